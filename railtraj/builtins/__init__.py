@@ -4,4 +4,5 @@
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "railtraj.builtins.executors",
     "railtraj.builtins.identity",
+    "railtraj.builtins.gtsam_optimizer",
 )

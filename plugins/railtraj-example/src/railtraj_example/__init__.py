@@ -1,0 +1,1 @@
+"""An example railtraj plugin package (see voxel_corner.py)."""

@@ -1,0 +1,111 @@
+"""The ``gtsam`` optimizer: smooth position corrections per run, fitted to the ties (GTSAM).
+
+The thesis' g2o graph with fixed attitude, made N-run, weighted and robust. Each run's
+correction is a 3-D vector at knots every ``knot_interval_s`` seconds, linear in between:
+
+* **prior** per knot: correction 0 with the trajectory's reported sd (small where GNSS was good,
+  large deep in the tunnel), so corrections go where the GNSS/INS smoother was unsure;
+* **smoothness** between consecutive knots: a random walk of ``smoothness_m_per_sqrt_s``;
+* **ties**: the two runs' copies of a feature coincide after correction,
+  ``c_b(t_b) - c_a(t_a) = x_a - x_b``, with ``tie_sigma_m / sqrt(weight)`` and a Huber kernel
+  so wrong matches cannot pull the solution.
+
+The problem is linear in the corrections; Levenberg-Marquardt converges in one or two steps and
+``gtsam.Marginals`` gives the posterior sd written to the corrected trajectories.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from railtraj.data import Ties, TileOffset, Trajectory
+from railtraj.hookspecs import hookimpl
+
+log = logging.getLogger(__name__)
+RUN_STRIDE = 10_000_000  # key = run index * RUN_STRIDE + knot index
+
+
+@dataclass
+class GtsamConfig:
+    name: str = "gtsam"
+    knot_interval_s: float = 0.5          # spacing of correction knots along each run
+    smoothness_m_per_sqrt_s: float = 0.05  # random-walk sigma of the correction
+    tie_sigma_m: float = 0.02             # 1-sigma of one tie (keypoint localisation)
+    huber_k: float = 1.345                # robust kernel threshold, in sigmas
+    default_sd_m: float = 1.0             # prior sigma where the trajectory reports no sd
+    min_sd_m: float = 0.005               # floor on the reported sd
+
+
+class GtsamOptimizer:
+    """Fits smooth per-run position corrections to the ties with a GTSAM factor graph."""
+
+    def __init__(self, knot_interval_s: float = 0.5, smoothness_m_per_sqrt_s: float = 0.05,
+                 tie_sigma_m: float = 0.02, huber_k: float = 1.345, default_sd_m: float = 1.0,
+                 min_sd_m: float = 0.005) -> None:
+        self.dt, self.rw = knot_interval_s, smoothness_m_per_sqrt_s
+        self.tie_sigma, self.huber_k = tie_sigma_m, huber_k
+        self.default_sd, self.min_sd = default_sd_m, min_sd_m
+
+    def _knots(self, traj: Trajectory) -> np.ndarray:
+        n = int(np.ceil((traj.time[-1] - traj.time[0]) / self.dt)) + 1
+        return traj.time[0] + self.dt * np.arange(n)
+
+    def optimize(self, trajectories: dict[str, Trajectory], ties: Sequence[Ties],
+                 offsets: Sequence[TileOffset]) -> dict[str, Trajectory]:
+        if not any(len(t) for t in ties):
+            log.warning("gtsam optimizer: no ties, trajectories left unchanged")
+            return dict(trajectories)
+        runs = sorted(trajectories)
+        index = {r: i for i, r in enumerate(runs)}
+        knots = {r: self._knots(trajectories[r]) for r in runs}
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        rw = gtsam.noiseModel.Isotropic.Sigma(3, self.rw * np.sqrt(self.dt))
+        for r in runs:
+            traj, base = trajectories[r], index[r] * RUN_STRIDE
+            sd = traj.sd_at(knots[r])
+            sd = np.full((len(knots[r]), 3), self.default_sd) if sd is None else np.maximum(sd, self.min_sd)
+            for k in range(len(knots[r])):
+                values.insert(base + k, np.zeros(3))
+                graph.add(gtsam.PriorFactorPoint3(base + k, np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(sd[k])))
+                if k:
+                    graph.add(gtsam.BetweenFactorPoint3(base + k - 1, base + k, np.zeros(3), rw))
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(self.huber_k)
+        n_ties = 0
+        for t in ties:
+            ka = self._key(t.time_a, trajectories[t.run_a], index[t.run_a], len(knots[t.run_a]))
+            kb = self._key(t.time_b, trajectories[t.run_b], index[t.run_b], len(knots[t.run_b]))
+            sig = self.tie_sigma / np.sqrt(np.clip(t.weight, 1e-6, None))
+            for i in range(len(t)):
+                if ka[i] == kb[i]:
+                    continue
+                noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(3, float(sig[i])))
+                graph.add(gtsam.BetweenFactorPoint3(int(ka[i]), int(kb[i]), t.xyz_a[i] - t.xyz_b[i], noise))
+                n_ties += 1
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(50)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        marginals = gtsam.Marginals(graph, result)
+        log.info("gtsam optimizer: %d runs, %d knots, %d tie factors", len(runs), values.size(), n_ties)
+        out = {}
+        for r in runs:
+            traj, base = trajectories[r], index[r] * RUN_STRIDE
+            corr = np.array([result.atPoint3(base + k) for k in range(len(knots[r]))])
+            var = np.array([np.diag(marginals.marginalCovariance(base + k)) for k in range(len(knots[r]))])
+            dxyz = np.column_stack([np.interp(traj.time, knots[r], corr[:, j]) for j in range(3)])
+            sd = np.sqrt(np.column_stack([np.interp(traj.time, knots[r], var[:, j]) for j in range(3)]))
+            out[r] = traj.with_positions(traj.xyz + dxyz, sd)
+        return out
+
+    def _key(self, times: np.ndarray, traj: Trajectory, run_index: int, n_knots: int) -> np.ndarray:
+        k = np.clip(np.rint((times - traj.time[0]) / self.dt).astype(np.int64), 0, n_knots - 1)
+        return run_index * RUN_STRIDE + k
+
+
+@hookimpl
+def railtraj_register_stages(registry) -> None:
+    registry.add("optimizer", "gtsam", GtsamOptimizer, GtsamConfig)

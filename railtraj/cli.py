@@ -1,0 +1,122 @@
+"""The ``railtraj`` command: a Hydra application and the composition root.
+
+This is the one place where configuration becomes objects: the stage registry builds each stage
+from its config group, :func:`railtraj.pipeline.run_pipeline` runs them, and
+:func:`railtraj.export.write_outputs` writes OUT/. Any :class:`railtraj.errors.RailtrajError` is
+printed as one line (``railtraj: error: ...``) and the exit status is 2.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import to_absolute_path
+from omegaconf import DictConfig, OmegaConf
+
+from railtraj.config import register_configs
+from railtraj.errors import RailtrajError
+
+log = logging.getLogger("railtraj")
+_failures: list[str] = []
+#: environment variable naming the folder of the OSTN15/OSGM15 grids when proj_grid_dir is not set
+GRID_DIR_ENV = "RAILTRAJ_PROJ_GRID_DIR"
+
+try:
+    register_configs()  # plugins' stage options must be in the ConfigStore before Hydra composes
+except RailtrajError as exc:  # a broken plugin: say which, in one line
+    print(f"railtraj: error: {exc}", file=sys.stderr)
+    raise SystemExit(2) from None
+
+
+def build_stages(cfg: DictConfig):
+    """Turn the composed config into stage objects (through the plugin registry)."""
+    from railtraj.pipeline import Stages
+    from railtraj.plugins import registry
+
+    reg = registry()
+    built = {}
+    for kind in ("detector", "descriptor", "matcher", "optimizer", "executor"):
+        node = OmegaConf.to_container(cfg[kind], resolve=True)
+        built[kind] = reg.create(kind, node["name"], node)
+    return Stages(**built)
+
+
+def run_job(cfg: DictConfig, out_dir: Path) -> None:
+    """Run one configured job and write its outputs to ``out_dir``."""
+    from railtraj.export import write_outputs
+    from railtraj.io.atomic import atomic_write
+    from railtraj.pipeline import PipelineOptions, run_pipeline
+
+    if cfg.threads:
+        from railtraj.o3d import o3d
+        o3d.utility.set_max_threads(int(cfg.threads))
+    truth_dir = cfg.truth_dir
+    if cfg.survey_dir:
+        survey_dir = Path(to_absolute_path(cfg.survey_dir))
+    else:
+        from railtraj.sim import demo_survey
+        survey_dir = demo_survey()
+        truth_dir = truth_dir or str(survey_dir.parent / "truth")
+        log.info("no survey_dir given: running on the built-in demo survey %s", survey_dir)
+    pipe = cfg.pipeline
+    grid_dir = cfg.proj_grid_dir or os.environ.get(GRID_DIR_ENV)
+    grid_dir = to_absolute_path(grid_dir) if grid_dir else None
+    options = PipelineOptions(mode=pipe.name, pairs=pipe.pairs, reference_run=pipe.reference_run,
+                              tile=pipe.tile, max_pairs=pipe.max_pairs, min_overlap_m=pipe.min_overlap_m,
+                              max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir)
+    stages = build_stages(cfg)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out_dir / "config.yaml") as fh:
+        fh.write(OmegaConf.to_yaml(cfg, resolve=True))
+    result = run_pipeline(survey_dir, stages, options)
+    write_outputs(result, out_dir, anchors=str(cfg.anchors), write_tiles=bool(cfg.write_tiles),
+                  executor=stages.executor, truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
+                  config=OmegaConf.to_container(cfg, resolve=True))
+    log.info("outputs written to %s", out_dir)
+
+
+@hydra.main(version_base="1.3", config_path=None, config_name="railtraj")
+def _hydra_main(cfg: DictConfig) -> None:
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        run_job(cfg, out_dir)
+    except RailtrajError as exc:
+        _failures.append(str(exc))
+        log.error("%s", exc)
+        print(f"railtraj: error: {exc}", file=sys.stderr)
+
+
+def main() -> None:
+    """Console entry point: run Hydra, then exit 2 if any job reported a bad input."""
+    _hydra_main()
+    if _failures:
+        sys.exit(2)
+
+
+def list_plugins() -> None:
+    """Console entry point ``railtraj-plugins``: every registered stage, its plugin and options."""
+    from railtraj.plugins import DISABLE_AUTOLOAD_ENV, registry
+
+    try:
+        specs = registry().specs()
+    except RailtrajError as exc:
+        print(f"railtraj-plugins: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    if os.environ.get(DISABLE_AUTOLOAD_ENV):
+        print(f"({DISABLE_AUTOLOAD_ENV} is set: third-party plugins were not loaded)")
+    kind = None
+    for spec in specs:
+        if spec.kind != kind:
+            kind = spec.kind
+            print(f"{kind}:")
+        opts = ", ".join(f"{k}={v!r}" for k, v in spec.options().items()) or "no options"
+        print(f"  {spec.name:<14} [{spec.plugin}]  {opts}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""Configuration schema of the ``railtraj`` Hydra application (the composition root's input).
+
+The top-level options live in :class:`RunConfig`; each stage group (detector, descriptor,
+matcher, optimizer, executor) gets its options from the dataclass its plugin registered, and
+the pipeline group from :class:`PipelineConfig`. Everything is stored in Hydra's ConfigStore, so
+the installed package runs with no YAML; ``conf/`` only holds presets.
+Only this module and :mod:`railtraj.cli` import Hydra/OmegaConf.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+from railtraj.plugins import registry
+
+
+@dataclass
+class PipelineConfig:
+    """Which tiles and run pairs are matched, and what is written.
+
+    ``local``: one tile area (``tile`` = a tile file name, or "x,y" in survey coordinates; when
+    empty, every overlapping pair); ``global``: all tiles, every run matched to a reference run;
+    ``multirun``: all tiles, every pair of runs, adjusted jointly.
+    """
+
+    name: str = "global"
+    pairs: str = "reference"           # reference | all
+    reference_run: Optional[str] = None  # default: the first run in name order
+    tile: Optional[str] = None         # local only: tile name or "x,y"
+    max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
+    min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
+    max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
+
+
+LOCAL = PipelineConfig(name="local", pairs="all")
+GLOBAL = PipelineConfig(name="global", pairs="reference")
+MULTIRUN = PipelineConfig(name="multirun", pairs="all")
+
+
+@dataclass
+class RunConfig:
+    """Options of one railtraj job. ``survey_dir`` empty: the built-in synthetic demo survey."""
+
+    survey_dir: Optional[str] = None
+    out_dir: str = "outputs/${now:%Y-%m-%d_%H-%M-%S_%f}"
+    crs: str = "EPSG:27700"            # survey CRS of trajectories and tiles (heights ODN)
+    proj_grid_dir: Optional[str] = None  # folder with the OSTN15/OSGM15 grids for ETRS89 anchors
+    anchors: str = "auto"              # auto: write anchors.csv when the grids are found; true; false
+    write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
+    truth_dir: Optional[str] = None    # simulator truth, for scoring only (never used to correct)
+    threads: int = 0                   # Open3D threads; 0: all cores
+    detector: Any = MISSING
+    descriptor: Any = MISSING
+    matcher: Any = MISSING
+    optimizer: Any = MISSING
+    executor: Any = MISSING
+    pipeline: Any = MISSING
+
+
+#: the defaults list: which option of each group a plain `railtraj` uses.
+DEFAULTS: list[Any] = [
+    "railtraj_schema",
+    {"detector": "iss"},            # ISS keypoints (thesis' detector)
+    {"descriptor": "none"},         # descriptors do not separate repetitive tunnel geometry
+    {"matcher": "pair_voting"},     # translation voting + dense check + refinement
+    {"optimizer": "identity"},      # replaced by a real optimizer as it lands
+    {"executor": "serial"},         # Open3D already uses every core inside a tile
+    {"pipeline": "global"},
+    "_self_",
+]
+
+HYDRA_OVERRIDES: dict[str, Any] = {
+    "run": {"dir": "${out_dir}"},
+    "sweep": {"dir": "${out_dir}", "subdir": "${hydra.job.override_dirname}"},
+    "job": {"config": {"override_dirname": {
+        "exclude_keys": ["survey_dir", "out_dir", "proj_grid_dir", "truth_dir"]}}},
+}
+
+
+def register_configs(cs: ConfigStore | None = None) -> None:
+    """Publish the schema, the pipeline presets and every plugin's stage options to Hydra."""
+    cs = cs or ConfigStore.instance()
+    cs.store(name="railtraj_schema", node=RunConfig)
+    for preset in (LOCAL, GLOBAL, MULTIRUN):
+        cs.store(group="pipeline", name=preset.name, node=preset)
+    for spec in registry().specs():
+        cs.store(group=spec.kind, name=spec.name, node=spec.config(name=spec.name))
+    cs.store(name="railtraj", node={"defaults": DEFAULTS, "hydra": HYDRA_OVERRIDES})
+
+
+__all__ = ["RunConfig", "PipelineConfig", "register_configs", "field"]

@@ -1,0 +1,140 @@
+"""Write a finished pipeline's results to the out folder (SPEC.md "Output").
+
+Every file is written atomically by :mod:`railtraj.io`; a failure part-way leaves earlier files
+complete and never a half-written one.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from railtraj.data import Trajectory
+from railtraj.errors import CRSError
+from railtraj.io.outputs import write_anchors_csv, write_json, write_offsets_csv, write_ties_csv
+from railtraj.io.trajectory_csv import write_trajectory_csv
+from railtraj.pipeline import PipelineResult, qc_figures
+
+log = logging.getLogger(__name__)
+
+#: anchors are thinned to at most one per run and this many seconds
+ANCHOR_INTERVAL_S = 0.5
+
+
+def anchor_rows(result: PipelineResult) -> dict[str, np.ndarray]:
+    """Anchor observations: corrected positions of each run at the times its ties were seen."""
+    cols: dict[str, list] = {k: [] for k in ("run_id", "time", "x", "y", "z", "sd_x", "sd_y", "sd_z")}
+    for run_id, traj in sorted(result.corrected.items()):
+        times = [t.time_a for t in result.ties if t.run_a == run_id] + [t.time_b for t in result.ties if t.run_b == run_id]
+        if not times:
+            continue
+        t = np.concatenate(times)
+        _, first = np.unique(np.floor(t / ANCHOR_INTERVAL_S), return_index=True)
+        t = np.sort(t[first])
+        xyz, _ = traj.interpolate(t)
+        sd = traj.sd_at(t)
+        sd = np.full((len(t), 3), np.nan) if sd is None else sd
+        cols["run_id"] += [run_id] * len(t)
+        cols["time"].append(t)
+        for k, axis in enumerate("xyz"):
+            cols[axis].append(xyz[:, k])
+            cols[f"sd_{axis}"].append(sd[:, k])
+    out = {k: (np.asarray(v, dtype=object) if k == "run_id" else (np.concatenate(v) if v else np.zeros(0)))
+           for k, v in cols.items()}
+    return out
+
+
+def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", write_tiles: bool = False,
+                  executor=None, truth_dir: Path | None = None, config: dict | None = None) -> dict[str, Any]:
+    """Write trajectories, offsets, ties, anchors, metrics.json, report.html (and tiles)."""
+    t0 = time.perf_counter()
+    for run_id, traj in result.corrected.items():
+        write_trajectory_csv(out_dir / "trajectories" / f"{run_id}.csv", traj)
+    write_offsets_csv(out_dir / "offsets.csv", result.offsets)
+    write_ties_csv(out_dir / "ties.csv", result.ties)
+    notes: list[str] = []
+    anchor_count = _write_anchors(result, out_dir, anchors, notes)
+    if write_tiles:
+        from railtraj.retile import write_corrected_tiles
+        write_corrected_tiles(result, out_dir / "tiles", executor)
+    seconds = dict(result.seconds, write=time.perf_counter() - t0)
+    metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir)
+    if config is not None:
+        metrics["config"] = {k: config.get(k) for k in ("detector", "descriptor", "matcher", "optimizer", "pipeline")}
+    write_json(out_dir / "metrics.json", metrics)
+    from railtraj.report.html import write_report
+    write_report(out_dir / "report.html", result, metrics)
+    return metrics
+
+
+def _write_anchors(result: PipelineResult, out_dir: Path, mode: str, notes: list[str]) -> int:
+    if mode.lower() in ("false", "no", "off"):
+        return 0
+    rows = anchor_rows(result)
+    if len(rows["time"]) == 0:
+        notes.append("anchors.csv not written: no reliable ties, so no anchor observations")
+        return 0
+    from railtraj.crs import to_etrs89
+    try:
+        lat, lon, h = to_etrs89(np.column_stack([rows["x"], rows["y"], rows["z"]]), result.options.crs,
+                                result.options.grid_dir)
+    except CRSError as exc:
+        if mode.lower() in ("true", "yes", "on", "required"):
+            raise
+        notes.append(f"anchors.csv not written: {exc}")
+        log.warning("anchors.csv not written: %s", exc)
+        return 0
+    rows.update(lat=lat, lon=lon, h_ell=h)
+    write_anchors_csv(out_dir / "anchors.csv", rows)
+    return len(lat)
+
+
+def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_count: int, notes: list[str],
+                  truth_dir: Path | None) -> dict[str, Any]:
+    """Counts, timings per stage and QC figures before and after correction."""
+    statuses: dict[str, int] = {}
+    stage_seconds: dict[str, float] = {}
+    for pr in result.pairs:
+        statuses[pr.offset.status] = statuses.get(pr.offset.status, 0) + 1
+        for k, v in pr.seconds.items():
+            stage_seconds[k] = stage_seconds.get(k, 0.0) + v
+    metrics: dict[str, Any] = {
+        "survey": str(result.survey.root),
+        "pipeline": result.options.mode,
+        "counts": {
+            "runs": len(result.survey.runs),
+            "tiles": sum(len(r.tiles) for r in result.survey.runs.values()),
+            "tile_pairs": len(result.pairs),
+            "tile_pairs_by_status": statuses,
+            "ties": int(sum(len(t) for t in result.ties)),
+            "anchors": anchor_count,
+        },
+        "seconds": {**{k: round(v, 3) for k, v in seconds.items()},
+                    "per_stage_total": {k: round(v, 3) for k, v in stage_seconds.items()}},
+        "qc": qc_figures(result),
+        "notes": notes,
+    }
+    if truth_dir is not None and truth_dir.exists():
+        metrics["truth"] = score_against_truth(result.trajectories, result.corrected, truth_dir)
+    from railtraj.plugins import plugin_manager
+    extra = {}
+    for part in plugin_manager().hook.railtraj_metrics(result=result):
+        if part:
+            extra.update(part)
+    if extra:
+        metrics["plugins"] = extra
+    return metrics
+
+
+def score_against_truth(before: dict[str, Trajectory], after: dict[str, Trajectory], truth_dir: Path) -> dict:
+    """Absolute errors of the input and corrected trajectories against the simulator's truth."""
+    from railtraj.sim import load_truth
+    from railtraj.sim.score import score_trajectories
+
+    truth = load_truth(truth_dir)
+    return {"before": score_trajectories(truth.trajectories, before),
+            "after": score_trajectories(truth.trajectories, after)}

@@ -1,0 +1,220 @@
+"""The railtraj method, step by step: pair tiles, detect, describe, match, optimize, report.
+
+:func:`run_pipeline` reads like the method section of the thesis (chapter 3): for every pair of
+overlapping tiles of two runs it detects keypoints, describes them, matches them into a
+translation with its uncertainty and a set of tie features; the optimizer then corrects every
+run's trajectory so the ties agree; the corrected trajectories, anchor observations for
+GNSS/INS re-processing, QC figures and (optionally) re-georeferenced tiles are written.
+Stages arrive already built (see :mod:`railtraj.cli`): nothing here knows about configuration.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from railtraj.data import PointTile, Ties, TileOffset, Trajectory
+from railtraj.io.las import read_tile
+from railtraj.io.survey import Survey, TilePair, find_overlaps, open_survey, require_overlaps
+from railtraj.qc import c2c_distances, distance_stats, moved, tie_residuals
+
+log = logging.getLogger(__name__)
+
+#: points per tile pair kept to measure cloud-to-cloud distances before and after correction
+C2C_SAMPLE = 20_000
+
+
+@dataclass
+class Stages:
+    """The built stage objects one job uses."""
+
+    detector: Any
+    descriptor: Any
+    matcher: Any
+    optimizer: Any
+    executor: Any
+
+
+@dataclass
+class PipelineOptions:
+    """Plain options of one job (built from the Hydra config by the CLI)."""
+
+    mode: str = "global"                 # local | global | multirun
+    pairs: str = "reference"             # reference | all
+    reference_run: str | None = None
+    tile: str | None = None
+    max_pairs: int = 0
+    min_overlap_m: float = 2.0
+    max_misalignment_m: float = 3.0
+    crs: str = "EPSG:27700"
+    grid_dir: str | None = None
+
+
+@dataclass
+class PairResult:
+    """What matching one tile pair produced, plus a point sample for C2C."""
+
+    offset: TileOffset
+    sample_a: PointTile
+    sample_b: PointTile
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PipelineResult:
+    survey: Survey
+    options: PipelineOptions
+    trajectories: dict[str, Trajectory]
+    corrected: dict[str, Trajectory]
+    pairs: list[PairResult]
+    ties: list[Ties]
+    seconds: dict[str, float]
+
+    @property
+    def offsets(self) -> list[TileOffset]:
+        return [p.offset for p in self.pairs]
+
+
+def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
+                 progress=None) -> PipelineResult:
+    """Run the whole method on a survey folder and return everything the writers need."""
+    clock: dict[str, float] = {}
+    t0 = time.perf_counter()
+    survey = open_survey(survey_dir)
+    trajectories = {r: survey.load_trajectory(r, crs=options.crs, grid_dir=options.grid_dir)
+                    for r in survey.runs}
+    pairs = select_pairs(survey, options)
+    clock["load"] = time.perf_counter() - t0
+    log.info("survey %s: %d runs, %d tiles, %d tile pairs to match", survey.root, len(survey.runs),
+             sum(len(r.tiles) for r in survey.runs.values()), len(pairs))
+
+    t0 = time.perf_counter()
+    jobs = [(pair, trajectories[pair.run_a], trajectories[pair.run_b], stages, options) for pair in pairs]
+    results = stages.executor.map(match_pair, jobs, progress=progress or _log_progress("matched"))
+    clock["match"] = time.perf_counter() - t0
+    ok = [r.offset for r in results if r.offset.ok]
+    log.info("%d of %d tile pairs matched reliably", len(ok), len(results))
+
+    t0 = time.perf_counter()
+    ties = Ties.concat([o.ties for o in ok if o.ties is not None])
+    corrected = stages.optimizer.optimize(trajectories, ties, [r.offset for r in results])
+    clock["optimize"] = time.perf_counter() - t0
+    return PipelineResult(survey, options, trajectories, corrected, results, ties, clock)
+
+
+def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
+    """Overlapping tile pairs to match, per the pipeline mode."""
+    pairs = find_overlaps(survey, min_overlap_m=options.min_overlap_m)
+    require_overlaps(pairs, survey)
+    if options.pairs == "reference":
+        ref = options.reference_run or sorted(survey.runs)[0]
+        if ref not in survey.runs:
+            from railtraj.errors import ConfigError
+            raise ConfigError(f"reference_run {ref!r} is not a run of the survey; runs: {', '.join(sorted(survey.runs))}")
+        pairs = [p for p in pairs if ref in (p.run_a, p.run_b)]
+    if options.tile:
+        pairs = [p for p in pairs if _pair_at(p, options.tile)]
+        if not pairs:
+            from railtraj.errors import ConfigError
+            raise ConfigError(f"no overlapping tile pair at tile={options.tile!r}; give a tile file name "
+                              "(e.g. 530000_180025.laz) or 'x,y' inside a tile of two runs")
+    if options.max_pairs > 0:
+        pairs = pairs[: options.max_pairs]
+    return pairs
+
+
+def _pair_at(pair: TilePair, tile: str) -> bool:
+    names = {pair.tile_a.path.name, pair.tile_b.path.name, pair.tile_a.path.stem, pair.tile_b.path.stem}
+    if tile in names:
+        return True
+    try:
+        x, y = (float(v) for v in tile.split(","))
+    except ValueError:
+        return False
+    return bool(pair.overlap_min[0] <= x <= pair.overlap_max[0] and pair.overlap_min[1] <= y <= pair.overlap_max[1])
+
+
+def match_pair(job: tuple) -> PairResult:
+    """Detect, describe and match one tile pair (runs in a worker for parallel executors)."""
+    pair, traj_a, traj_b, stages, options = job
+    seconds: dict[str, float] = {}
+    margin = options.max_misalignment_m
+    lo = np.asarray(pair.overlap_min, dtype=float) - margin
+    hi = np.asarray(pair.overlap_max, dtype=float) + margin
+    lo[2], hi[2] = -np.inf, np.inf
+
+    t = time.perf_counter()
+    tile_a = read_tile(pair.tile_a.path, run_id=pair.run_a, bbox=(lo, hi))
+    tile_b = read_tile(pair.tile_b.path, run_id=pair.run_b, bbox=(lo, hi))
+    traj_a.check_covers(tile_a.gps_time, f"points of {pair.tile_a.path.name}")
+    traj_b.check_covers(tile_b.gps_time, f"points of {pair.tile_b.path.name}")
+    seconds["read"] = time.perf_counter() - t
+
+    names = dict(run_a=pair.run_a, run_b=pair.run_b, tile_a=pair.tile_a.path.name, tile_b=pair.tile_b.path.name)
+    t = time.perf_counter()
+    kp_a, kp_b = stages.detector.detect(tile_a), stages.detector.detect(tile_b)
+    seconds["detect"] = time.perf_counter() - t
+    t = time.perf_counter()
+    kp_a, kp_b = stages.descriptor.describe(tile_a, kp_a), stages.descriptor.describe(tile_b, kp_b)
+    seconds["describe"] = time.perf_counter() - t
+    t = time.perf_counter()
+    offset = stages.matcher.match(tile_a, kp_a, tile_b, kp_b, None)
+    seconds["match"] = time.perf_counter() - t
+
+    ties = offset.ties
+    if ties is not None:
+        ties = Ties(pair.run_a, pair.run_b, ties.time_a, ties.time_b, ties.xyz_a, ties.xyz_b, ties.weight)
+    info = dict(offset.info, keypoints_a=len(kp_a), keypoints_b=len(kp_b), points_a=len(tile_a),
+                points_b=len(tile_b), seconds=seconds)
+    offset = TileOffset(**names, d=offset.d, cov=offset.cov, inliers=offset.inliers, status=offset.status,
+                        ties=ties, info=info)
+    rng = np.random.default_rng(0)
+    sample = [t_.subset(rng.permutation(len(t_))[:C2C_SAMPLE]) for t_ in (tile_a, tile_b)]
+    log.debug("%s/%s vs %s/%s: %s d=%s", *names.values(), offset.status, np.round(offset.d, 4))
+    return PairResult(offset, sample[0], sample[1], seconds)
+
+
+def qc_figures(result: PipelineResult) -> dict[str, Any]:
+    """Tie residuals and C2C distances before and after correction, overall and per pair."""
+    before, after = [], []
+    for ties in result.ties:
+        before.append(tie_residuals(ties, result.trajectories))
+        after.append(tie_residuals(ties, result.trajectories, result.corrected))
+    c2c_before, c2c_after, per_pair = [], [], []
+    for pr in result.pairs:
+        a, b = pr.sample_a, pr.sample_b
+        if len(a) == 0 or len(b) == 0:
+            continue
+        db = c2c_distances(b.xyz, a.xyz)
+        ma = moved(a.xyz, a.gps_time, result.trajectories[a.run_id], result.corrected[a.run_id])
+        mb = moved(b.xyz, b.gps_time, result.trajectories[b.run_id], result.corrected[b.run_id])
+        da = c2c_distances(mb, ma)
+        c2c_before.append(db)
+        c2c_after.append(da)
+        per_pair.append({"tile_a": pr.offset.tile_a, "tile_b": pr.offset.tile_b, "run_a": pr.offset.run_a,
+                         "run_b": pr.offset.run_b, "c2c_median_before": float(np.median(db)) if len(db) else None,
+                         "c2c_median_after": float(np.median(da)) if len(da) else None})
+    cat = (lambda xs: np.concatenate(xs) if xs else np.zeros(0))
+    return {
+        "tie_residual_before_m": distance_stats(cat(before)),
+        "tie_residual_after_m": distance_stats(cat(after)),
+        "c2c_before_m": distance_stats(cat(c2c_before)),
+        "c2c_after_m": distance_stats(cat(c2c_after)),
+        "c2c_per_pair": per_pair,
+    }
+
+
+def _log_progress(what: str):
+    state = {"last": 0.0}
+
+    def report(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done == total or now - state["last"] > 5.0:
+            state["last"] = now
+            log.info("%s %d/%d tile pairs", what, done, total)
+    return report

@@ -1,0 +1,106 @@
+"""OUT/report.html: the QC report a surveyor reads, one self-contained file (plots inlined).
+
+Sections: summary figures, tile-pair offsets along the survey, corrections applied to each run,
+tie residuals before/after, and the table of tile pairs with their status.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from typing import Any
+
+import numpy as np
+
+from railtraj.io.atomic import atomic_write
+
+
+def _figure_to_img(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return f'<img alt="plot" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+
+
+def _plots(result) -> list[tuple[str, str]]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = []
+    ok = [o for o in result.offsets if o.ok]
+    if ok:
+        fig, ax = plt.subplots(figsize=(8, 3))
+        t = np.arange(len(ok))
+        d = np.array([o.d for o in ok])
+        sd = np.array([o.sd for o in ok])
+        for k, lab in enumerate("xyz"):
+            ax.errorbar(t, d[:, k], yerr=sd[:, k], fmt="o", ms=3, label=f"d{lab}")
+        ax.set_xlabel("matched tile pair")
+        ax.set_ylabel("offset run_b -> run_a [m]")
+        ax.legend(ncol=3)
+        ax.grid(alpha=0.3)
+        out.append(("Tile-pair offsets (with 1-sigma)", _figure_to_img(fig)))
+    fig, ax = plt.subplots(figsize=(8, 3))
+    for run_id, traj in sorted(result.trajectories.items()):
+        corr = result.corrected[run_id].xyz - traj.xyz
+        ax.plot(traj.time - traj.time[0], np.linalg.norm(corr, axis=1), label=run_id)
+    ax.set_xlabel("time since run start [s]")
+    ax.set_ylabel("|correction| [m]")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    out.append(("Correction applied to each run", _figure_to_img(fig)))
+    return out
+
+
+def _table(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "<p>none</p>"
+    head = "".join(f"<th>{html.escape(str(k))}</th>" for k in rows[0])
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in r.values()) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return "" if not np.isfinite(v) else f"{v:.4f}"
+    return str(v)
+
+
+def write_report(path, result, metrics: dict[str, Any]) -> None:
+    """Write the HTML report for a pipeline result and its metrics."""
+    qc = metrics["qc"]
+    summary = [{"figure": name, **{k: qc[key].get(k) for k in ("n", "median", "rms", "p95", "max")}}
+               for name, key in (("tie residual before [m]", "tie_residual_before_m"),
+                                 ("tie residual after [m]", "tie_residual_after_m"),
+                                 ("C2C before [m]", "c2c_before_m"), ("C2C after [m]", "c2c_after_m"))]
+    pairs = [{"run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+              "dx": float(o.d[0]), "dy": float(o.d[1]), "dz": float(o.d[2]), "sd_x": float(o.sd[0]),
+              "sd_y": float(o.sd[1]), "sd_z": float(o.sd[2]), "inliers": o.inliers, "status": o.status}
+             for o in result.offsets]
+    plots = "".join(f"<h2>{html.escape(t)}</h2>{img}" for t, img in _plots(result))
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in metrics.get("notes", []))
+    truth = ""
+    if "truth" in metrics:
+        truth = f"<h2>Against the simulator's truth</h2><pre>{html.escape(json.dumps(metrics['truth'], indent=1)[:20000])}</pre>"
+    doc = f"""<!doctype html><html><head><meta charset="utf-8"><title>railtraj QC report</title>
+<style>body{{font-family:sans-serif;margin:2em;max-width:70em}}table{{border-collapse:collapse;font-size:90%}}
+td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}th{{background:#eee}}</style></head><body>
+<h1>railtraj QC report</h1>
+<p>Survey <code>{html.escape(str(result.survey.root))}</code>, pipeline <b>{html.escape(result.options.mode)}</b>:
+{metrics['counts']['runs']} runs, {metrics['counts']['tiles']} tiles, {metrics['counts']['tile_pairs']} tile pairs
+({html.escape(json.dumps(metrics['counts']['tile_pairs_by_status']))}), {metrics['counts']['ties']} ties,
+{metrics['counts']['anchors']} anchors.</p>
+<ul>{notes}</ul>
+<h2>Summary</h2>{_table(summary)}
+{plots}{truth}
+<h2>Tile pairs</h2>{_table(pairs)}
+<h2>Timings [s]</h2><pre>{html.escape(json.dumps(metrics['seconds'], indent=1))}</pre>
+</body></html>"""
+    with atomic_write(path) as fh:
+        fh.write(doc)

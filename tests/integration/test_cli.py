@@ -1,0 +1,96 @@
+"""End to end: the `railtraj` command on small simulated surveys, and its failures on bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from railtraj.io.trajectory_csv import read_trajectory_csv
+
+pytestmark = pytest.mark.slow
+GRIDS = Path(__file__).resolve().parents[3] / "shared" / "data" / "proj"
+
+
+def railtraj(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "railtraj.cli", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=900, env=dict(os.environ, **(env or {})))
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory) -> Path:
+    from railtraj.sim import generate
+
+    root = tmp_path_factory.mktemp("sim")
+    res = generate("thesis", root, seed=3, size=0.3)
+    return Path(res.survey_dir)
+
+
+def test_job_writes_every_spec_output(survey, tmp_path):
+    out = tmp_path / "out"
+    extra = [f"proj_grid_dir={GRIDS}"] if GRIDS.is_dir() else []
+    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", f"truth_dir={survey.parent / 'truth'}", *extra)
+    assert res.returncode == 0, res.stderr[-3000:]
+    runs = sorted(p.name for p in survey.iterdir() if p.is_dir())
+    for run in runs:
+        corrected = read_trajectory_csv(out / "trajectories" / f"{run}.csv", run)
+        original = read_trajectory_csv(survey / run / "trajectory.csv", run)
+        np.testing.assert_array_equal(corrected.time, original.time)   # same epochs
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["counts"]["runs"] == len(runs)
+    assert metrics["counts"]["tile_pairs"] > 0
+    assert "truth" in metrics and "c2c_before_m" in metrics["qc"]
+    header = (out / "offsets.csv").read_text().splitlines()[0]
+    assert header == "run_a,run_b,tile_a,tile_b,dx,dy,dz,sd_x,sd_y,sd_z,inliers,status"
+    assert (out / "ties.csv").read_text().startswith("run_a,run_b,time_a,time_b,xa,ya,za,xb,yb,zb,weight")
+    assert (out / "config.yaml").exists() and (out / "report.html").stat().st_size > 1000
+    if GRIDS.is_dir() and metrics["counts"]["anchors"]:
+        assert (out / "anchors.csv").read_text().startswith("run_id,time,x,y,z,lat,lon,h_ell,sd_x,sd_y,sd_z")
+    assert not list(out.rglob("*.part")), "temporary files left behind"
+
+
+def test_example_plugin_runs_end_to_end(survey, tmp_path):
+    out = tmp_path / "plug"
+    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", "detector=voxel_corner", "pipeline=local",
+                   "pipeline.max_pairs=1", "anchors=false")
+    assert res.returncode == 0, res.stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["detector"]["name"] == "voxel_corner"
+    assert metrics["counts"]["tile_pairs"] == 1
+
+
+def test_missing_survey_is_one_line_error(tmp_path):
+    res = railtraj(f"survey_dir={tmp_path / 'nope'}", f"out_dir={tmp_path / 'o'}")
+    assert res.returncode == 2
+    err = [ln for ln in res.stderr.splitlines() if ln.startswith("railtraj: error:")]
+    assert len(err) == 1 and "nope" in err[0]
+
+
+def test_survey_with_one_run_is_rejected(survey, tmp_path):
+    bad = tmp_path / "one_run"
+    first = sorted(p for p in survey.iterdir() if p.is_dir())[0]
+    shutil.copytree(first, bad / first.name)
+    res = railtraj(f"survey_dir={bad}", f"out_dir={tmp_path / 'o'}")
+    assert res.returncode == 2
+    assert "railtraj: error:" in res.stderr and "run" in res.stderr
+
+
+def test_malformed_trajectory_is_rejected_and_nothing_half_written(survey, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(survey, bad)
+    run = sorted(p for p in bad.iterdir() if p.is_dir())[0]
+    lines = (run / "trajectory.csv").read_text().splitlines()
+    lines[5] = lines[5].replace(",", ",abc,", 1)
+    (run / "trajectory.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "o"
+    res = railtraj(f"survey_dir={bad}", f"out_dir={out}")
+    assert res.returncode == 2
+    assert "trajectory.csv" in res.stderr
+    assert not (out / "metrics.json").exists()
+    assert not list(out.rglob("*.part"))
