@@ -54,7 +54,7 @@ class Trajectory:
         for name in ("time", "xyz", "rpy", "sd"):
             arr = getattr(self, name)
             if arr is not None and not np.isfinite(arr).all():
-                row = int(np.argwhere(~np.isfinite(arr.reshape(n, -1)).any(axis=1))[0, 0])
+                row = int(np.flatnonzero((~np.isfinite(arr.reshape(n, -1))).any(axis=1))[0])
                 raise TrajectoryError(
                     f"trajectory {self.run_id!r} has a NaN or infinite {name} at epoch {row} "
                     f"(time {self.time[row]!r}); remove or fill that epoch")

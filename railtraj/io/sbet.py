@@ -6,8 +6,9 @@ ETRS89 (EPSG:4937), which is what a UK post-processing run referenced to OS Net 
 
 Converting to a :class:`Trajectory` projects positions to the survey CRS and turns SBET's *true*
 heading into the *grid* heading SPEC.md asks for, using the projection's meridian convergence
-(``grid = true - convergence``; about +-1.5 degrees at the edges of Great Britain). Roll and
-pitch are unchanged by that rotation about the vertical.
+(``grid = true - convergence``: 0 on the central meridian, about -1.8 degrees in Wales and
+several degrees in the Hebrides). Roll and pitch are unchanged by that rotation about the
+vertical.
 """
 
 from __future__ import annotations

@@ -118,8 +118,8 @@ def to_float(col: np.ndarray, name: str, path: str | os.PathLike, what: str) -> 
         return col.astype(np.float64)
     except ValueError:
         bad = next(i for i, v in enumerate(col) if not _is_float(v))
-        raise FormatError(f"{what} {path}, data row {bad + 1}, column {name!r}: {col[bad]!r} "
-                          "is not a number; fix or remove that row") from None
+        raise FormatError(f"{what} {path}, data row {bad + 1}, column {name!r}: "
+                          f"{str(col[bad])!r} is not a number; fix or remove that row") from None
 
 
 def _is_float(text: str) -> bool:

@@ -80,17 +80,23 @@ def nearest_member(grid: VoxelGrid, raw_xyz: np.ndarray, voxel_idx: np.ndarray,
     return best[slot[voxel_idx]]
 
 
-def neighbour_sums(grid: VoxelGrid, values: np.ndarray, reach: int = 1) -> np.ndarray:
-    """Sum of per-voxel ``values`` (m, c) over the (2*reach+1)**3 block of voxels around each voxel.
+def neighbour_sums(grid: VoxelGrid, values: np.ndarray) -> np.ndarray:
+    """Sum of per-voxel ``values`` (m, c) over the 3 x 3 x 3 block of voxels around each voxel.
 
-    Looks the neighbours up by key (``np.searchsorted``), so it works on sparse grids of any extent.
+    Neighbours are found by key with ``np.searchsorted``, so this works on sparse grids of any
+    extent. z is the fastest-varying part of a key, so one search per (dx, dy) column finds the
+    up to three voxels dz = -1, 0, 1 at consecutive positions. Missing neighbours read a zero row.
     """
+    keys, m = grid.keys, len(grid.keys)
+    padded = np.vstack([values, np.zeros((1,) + values.shape[1:])])
     out = np.zeros_like(values)
-    ijk_step = np.array([1 << (2 * _BITS), 1 << _BITS, 1], np.int64)
-    r = np.arange(-reach, reach + 1)
-    for offset in np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3):
-        target = grid.keys + int(offset @ ijk_step)
-        pos = np.minimum(np.searchsorted(grid.keys, target), len(grid.keys) - 1)
-        hit = grid.keys[pos] == target
-        out[hit] += values[pos[hit]]
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            target = keys + ((dx << (2 * _BITS)) + (dy << _BITS))
+            pos = np.searchsorted(keys, target - 1)
+            for s in range(3):
+                idx = np.minimum(pos + s, m - 1)
+                k = keys[idx]
+                idx[(k < target - 1) | (k > target + 1) | (pos + s >= m)] = m
+                out += np.take(padded, idx, axis=0)
     return out

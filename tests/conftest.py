@@ -1,0 +1,55 @@
+"""Shared, generic test helpers: small seeded trajectories and tiles generated on the fly.
+
+Keep this file to helpers every test module may want; module-specific fixtures live with their
+tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from railtraj.data import PointTile, Trajectory
+
+#: A point on the ground in central London, British National Grid (EPSG:27700), metres.
+BNG_ORIGIN = (530000.0, 180000.0, 20.0)
+
+
+def _trajectory(n: int = 200, seed: int = 0, run_id: str = "a", sd: bool = True,
+                origin=BNG_ORIGIN, heading_deg: float = 30.0, speed: float = 10.0,
+                t0: float = 552000.0, dt: float = 0.01) -> Trajectory:
+    """A straight, gently noisy run along ``heading_deg`` (grid) at ``speed`` m/s."""
+    rng = np.random.default_rng(seed)
+    t = t0 + np.arange(n) * dt
+    h = np.radians(heading_deg)
+    s = speed * (t - t0)
+    xyz = np.asarray(origin, float) + np.column_stack([s * np.sin(h), s * np.cos(h), 0.01 * s])
+    xyz += rng.normal(0.0, 0.002, xyz.shape)
+    rpy = np.column_stack([rng.normal(0, 0.5, n), rng.normal(0, 0.5, n),
+                           heading_deg + rng.normal(0, 0.2, n)])
+    sds = rng.uniform(0.01, 0.05, (n, 3)) if sd else None
+    return Trajectory(time=t, xyz=xyz, rpy=rpy, sd=sds, run_id=run_id)
+
+
+def _tile(n: int = 1000, seed: int = 0, origin=BNG_ORIGIN, size: float = 25.0,
+          t0: float = 552000.0, run_id: str = "a", name: str = "tile.laz") -> PointTile:
+    """``n`` random points in a ``size`` x ``size`` x 5 m box with sorted GPS times."""
+    rng = np.random.default_rng(seed)
+    xyz = np.asarray(origin, float) + rng.uniform([0, 0, 0], [size, size, 5.0], (n, 3))
+    times = np.sort(t0 + rng.uniform(0.0, 2.0, n))
+    intensity = rng.integers(0, 65535, n).astype(np.uint16)
+    return PointTile(xyz=xyz, gps_time=times, intensity=intensity, run_id=run_id, name=name)
+
+
+@pytest.fixture
+def make_trajectory() -> Callable[..., Trajectory]:
+    """Factory: ``make_trajectory(n=200, seed=0, run_id="a", sd=True, ...)``."""
+    return _trajectory
+
+
+@pytest.fixture
+def make_tile() -> Callable[..., PointTile]:
+    """Factory: ``make_tile(n=1000, seed=0, origin=..., size=25.0, ...)``."""
+    return _tile
