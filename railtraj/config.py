@@ -10,7 +10,7 @@ Only this module and :mod:`railtraj.cli` import Hydra/OmegaConf.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
@@ -29,8 +29,8 @@ class PipelineConfig:
 
     name: str = "global"
     pairs: str = "reference"           # reference | all
-    reference_run: Optional[str] = None  # default: the first run in name order
-    tile: Optional[str] = None         # local only: tile name or "x,y"
+    reference_run: str | None = None  # default: the first run in name order
+    tile: str | None = None         # local only: tile name or "x,y"
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
@@ -45,13 +45,13 @@ MULTIRUN = PipelineConfig(name="multirun", pairs="all")
 class RunConfig:
     """Options of one railtraj job. ``survey_dir`` empty: the built-in synthetic demo survey."""
 
-    survey_dir: Optional[str] = None
+    survey_dir: str | None = None
     out_dir: str = "outputs/${now:%Y-%m-%d_%H-%M-%S_%f}"
     crs: str = "EPSG:27700"            # survey CRS of trajectories and tiles (heights ODN)
-    proj_grid_dir: Optional[str] = None  # folder with the OSTN15/OSGM15 grids for ETRS89 anchors
+    proj_grid_dir: str | None = None  # folder with the OSTN15/OSGM15 grids for ETRS89 anchors
     anchors: str = "auto"              # auto: write anchors.csv when the grids are found; true; false
     write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
-    truth_dir: Optional[str] = None    # simulator truth, for scoring only (never used to correct)
+    truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)
     threads: int = 0                   # Open3D threads; 0: all cores
     detector: Any = MISSING
     descriptor: Any = MISSING

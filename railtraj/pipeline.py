@@ -199,14 +199,17 @@ def qc_figures(result: PipelineResult) -> dict[str, Any]:
         per_pair.append({"tile_a": pr.offset.tile_a, "tile_b": pr.offset.tile_b, "run_a": pr.offset.run_a,
                          "run_b": pr.offset.run_b, "c2c_median_before": float(np.median(db)) if len(db) else None,
                          "c2c_median_after": float(np.median(da)) if len(da) else None})
-    cat = (lambda xs: np.concatenate(xs) if xs else np.zeros(0))
     return {
-        "tie_residual_before_m": distance_stats(cat(before)),
-        "tie_residual_after_m": distance_stats(cat(after)),
-        "c2c_before_m": distance_stats(cat(c2c_before)),
-        "c2c_after_m": distance_stats(cat(c2c_after)),
+        "tie_residual_before_m": distance_stats(_concat(before)),
+        "tie_residual_after_m": distance_stats(_concat(after)),
+        "c2c_before_m": distance_stats(_concat(c2c_before)),
+        "c2c_after_m": distance_stats(_concat(c2c_after)),
         "c2c_per_pair": per_pair,
     }
+
+
+def _concat(parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def _log_progress(what: str):

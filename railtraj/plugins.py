@@ -126,7 +126,7 @@ def _load_entry_point_plugins(pm: pluggy.PluginManager) -> None:
         log.debug("loaded plugin %s from %s", ep.name, dist.name if dist else ep.value)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def plugin_manager() -> pluggy.PluginManager:
     """The process-wide plugin manager: built-ins first, then entry points (unless disabled)."""
     from railtraj.builtins import BUILTIN_PLUGINS
@@ -140,7 +140,7 @@ def plugin_manager() -> pluggy.PluginManager:
     return pm
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def registry() -> StageRegistry:
     """The process-wide stage registry, filled once from every registered plugin."""
     pm = plugin_manager()
