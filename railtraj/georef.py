@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from railtraj.data import PointTile, Trajectory
 from railtraj.geo import NED_TO_ENU
 
-_CHUNK = 1_000_000
+_CHUNK = 250_000
 
 
 def _rotate(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -102,9 +102,15 @@ class PoseInterpolator:
             out[sl] = _rotate(-self._steps[idx] * alpha[:, None], v)
         return out
 
-    def rotation(self, times: np.ndarray) -> Rotation:
-        """Body -> NED rotations at ``times`` (for callers that need attitude, not points)."""
-        return self.traj.interpolate(times)[1]
+    def matrices(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Body -> world (ENU) matrices (n, 3, 3) at ``times`` and the body-frame angular rate
+        (n, 3), rad/s, of the epoch interval each time falls in (constant within an interval)."""
+        t = np.asarray(times, dtype=float)
+        self.traj.check_covers(t, "requested times")
+        idx, alpha = self._locate(t)
+        step = Rotation.from_rotvec(self._steps[idx] * alpha[:, None]).as_matrix()
+        rate = self._steps[idx] / (self._time[idx + 1] - self._time[idx])[:, None]
+        return self._world[idx] @ step, rate
 
 
 def regeoreference(tile: PointTile, from_traj: Trajectory, to_traj: Trajectory) -> PointTile:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from railtraj.data import PointTile, Ties, TileOffset, Trajectory
+from railtraj.data import Keypoints, PointTile, Ties, TileOffset, Trajectory
 from railtraj.io.las import read_tile
 from railtraj.io.survey import Survey, TilePair, find_overlaps, open_survey, require_overlaps
 from railtraj.qc import c2c_distances, distance_stats, moved, tie_residuals
@@ -94,8 +94,16 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
              sum(len(r.tiles) for r in survey.runs.values()), len(pairs))
 
     t0 = time.perf_counter()
-    jobs = [(pair, trajectories[pair.run_a], trajectories[pair.run_b], stages, options) for pair in pairs]
-    results = stages.executor.map(match_pair, jobs, progress=progress or _log_progress("matched"))
+    tiles = sorted({(p.run_a, p.tile_a.path) for p in pairs} | {(p.run_b, p.tile_b.path) for p in pairs})
+    detected = stages.executor.map(detect_tile, [(run, path, trajectories[run], stages) for run, path in tiles],
+                                   progress=progress or _log_progress("detected keypoints in", "tiles"))
+    keypoints = dict(zip(tiles, detected, strict=True))
+    clock["detect"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    jobs = [(pair, keypoints[(pair.run_a, pair.tile_a.path)], keypoints[(pair.run_b, pair.tile_b.path)],
+             stages, options) for pair in pairs]
+    results = stages.executor.map(match_pair, jobs, progress=progress or _log_progress("matched", "tile pairs"))
     clock["match"] = time.perf_counter() - t0
     ok = [r.offset for r in results if r.offset.ok]
     log.info("%d of %d tile pairs matched reliably", len(ok), len(results))
@@ -139,33 +147,47 @@ def _pair_at(pair: TilePair, tile: str) -> bool:
     return bool(pair.overlap_min[0] <= x <= pair.overlap_max[0] and pair.overlap_min[1] <= y <= pair.overlap_max[1])
 
 
+def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
+    """Read one tile, check its trajectory covers it, detect and describe its keypoints."""
+    run_id, path, traj, stages = job
+    t = time.perf_counter()
+    tile = read_tile(path, run_id=run_id)
+    traj.check_covers(tile.gps_time, f"points of {run_id}/{path.name}")
+    seconds = {"read": time.perf_counter() - t}
+    t = time.perf_counter()
+    kp = stages.detector.detect(tile)
+    seconds["detect"] = time.perf_counter() - t
+    t = time.perf_counter()
+    kp = stages.descriptor.describe(tile, kp)
+    seconds["describe"] = time.perf_counter() - t
+    log.debug("%s/%s: %d points, %d keypoints", run_id, path.name, len(tile), len(kp))
+    return kp, seconds
+
+
 def match_pair(job: tuple) -> PairResult:
-    """Detect, describe and match one tile pair (runs in a worker for parallel executors)."""
-    pair, traj_a, traj_b, stages, options = job
-    seconds: dict[str, float] = {}
+    """Match one tile pair from its keypoints (runs in a worker for parallel executors).
+
+    Both tiles are read cropped to their overlap grown by the largest expected misalignment, and
+    so are the keypoints, so that partly overlapping tiles compare like with like.
+    """
+    pair, (kp_a, sec_a), (kp_b, sec_b), stages, options = job
     margin = options.max_misalignment_m
     lo = np.asarray(pair.overlap_min, dtype=float) - margin
     hi = np.asarray(pair.overlap_max, dtype=float) + margin
     lo[2], hi[2] = -np.inf, np.inf
+    seconds = {k: sec_a[k] + sec_b[k] for k in sec_a}
 
     t = time.perf_counter()
     tile_a = read_tile(pair.tile_a.path, run_id=pair.run_a, bbox=(lo, hi))
     tile_b = read_tile(pair.tile_b.path, run_id=pair.run_b, bbox=(lo, hi))
-    traj_a.check_covers(tile_a.gps_time, f"points of {pair.tile_a.path.name}")
-    traj_b.check_covers(tile_b.gps_time, f"points of {pair.tile_b.path.name}")
-    seconds["read"] = time.perf_counter() - t
+    kp_a, kp_b = (kp.subset(np.flatnonzero(((kp.xyz >= lo) & (kp.xyz <= hi)).all(axis=1))) for kp in (kp_a, kp_b))
+    seconds["read"] += time.perf_counter() - t
 
-    names = dict(run_a=pair.run_a, run_b=pair.run_b, tile_a=pair.tile_a.path.name, tile_b=pair.tile_b.path.name)
-    t = time.perf_counter()
-    kp_a, kp_b = stages.detector.detect(tile_a), stages.detector.detect(tile_b)
-    seconds["detect"] = time.perf_counter() - t
-    t = time.perf_counter()
-    kp_a, kp_b = stages.descriptor.describe(tile_a, kp_a), stages.descriptor.describe(tile_b, kp_b)
-    seconds["describe"] = time.perf_counter() - t
     t = time.perf_counter()
     offset = stages.matcher.match(tile_a, kp_a, tile_b, kp_b, None)
     seconds["match"] = time.perf_counter() - t
 
+    names = dict(run_a=pair.run_a, run_b=pair.run_b, tile_a=pair.tile_a.path.name, tile_b=pair.tile_b.path.name)
     ties = offset.ties
     if ties is not None:
         ties = Ties(pair.run_a, pair.run_b, ties.time_a, ties.time_b, ties.xyz_a, ties.xyz_b, ties.weight)
@@ -212,12 +234,12 @@ def _concat(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def _log_progress(what: str):
+def _log_progress(what: str, unit: str):
     state = {"last": 0.0}
 
     def report(done: int, total: int) -> None:
         now = time.perf_counter()
         if done == total or now - state["last"] > 5.0:
             state["last"] = now
-            log.info("%s %d/%d tile pairs", what, done, total)
+            log.info("%s %d/%d %s", what, done, total, unit)
     return report

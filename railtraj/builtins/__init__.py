@@ -5,4 +5,11 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "railtraj.builtins.executors",
     "railtraj.builtins.identity",
     "railtraj.builtins.gtsam_optimizer",
+    "railtraj.builtins.iss",
+    "railtraj.builtins.harris3d",
+    "railtraj.builtins.fpfh",
+    "railtraj.builtins.none_descriptor",
+    "railtraj.builtins.mutual_nn",
+    "railtraj.builtins.pair_voting",
+    "railtraj.builtins.icp",
 )

@@ -75,11 +75,11 @@ def tunnel_xyz(x0: float, x1: float, density: float = 800.0, seed: int = 0,
         for k in ks:  # ribs: inner arch face, two side faces, wall legs
             xa = k * RIB_SPACING
             parts.append(_arc(rng, density, xa, xa + RIB_WIDTH, RADIUS - RIB_DEPTH, phi_wall, np.pi - phi_wall))
-            for xs in (xa, xa + RIB_WIDTH):
-                ring = _arc(rng, density / RIB_WIDTH * RIB_DEPTH, xs, xs, RADIUS, phi_wall, np.pi - phi_wall)
-                r = rng.uniform(RADIUS - RIB_DEPTH, RADIUS, len(ring))
-                ring[:, 1:] = (ring[:, 1:] - [0, ARC_Z0]) * (r / RADIUS)[:, None] + [0, ARC_Z0]
-                parts.append(ring)
+            for xs in (xa, xa + RIB_WIDTH):  # side faces: annular sectors facing along the track
+                n = rng.poisson(density * RIB_DEPTH * RADIUS * (np.pi - 2 * phi_wall))
+                r = rng.uniform(RADIUS - RIB_DEPTH, RADIUS, n)
+                phi = rng.uniform(phi_wall, np.pi - phi_wall, n)
+                parts.append(np.c_[np.full(n, xs), r * np.cos(phi), ARC_Z0 + r * np.sin(phi)])
             for s in (-1, 1):
                 lo = (xa, s * HALF_WIDTH - (s > 0) * RIB_DEPTH, WALL_TOP - RIB_DOWN)
                 parts.append(_box(rng, density, lo, np.add(lo, (RIB_WIDTH, RIB_DEPTH, RIB_DOWN)),
@@ -124,3 +124,18 @@ def second_acquisition(tile: PointTile, shift, noise: float = 0.02, seed: int = 
     rng = np.random.default_rng(seed)
     xyz = tile.xyz + np.asarray(shift, float) + rng.normal(0, noise, tile.xyz.shape)
     return PointTile(xyz, tile.gps_time.copy(), run_id=run_id, name=f"{run_id}_{tile.name}")
+
+
+def placed(tile: PointTile, origin=(530000.0, 180000.0, 20.0), heading_deg: float = 30.0) -> PointTile:
+    """The tile turned by ``heading_deg`` about z (x axis -> the tunnel axis) and moved to
+    ``origin``: survey-grid coordinates, so nothing can rely on an x-aligned tunnel or small
+    numbers. A local shift ``s`` becomes ``rotation_z(heading) @ s`` in the survey grid."""
+    R = rotation_z(heading_deg)
+    return PointTile(tile.xyz @ R.T + np.asarray(origin, float), tile.gps_time, tile.intensity,
+                     tile.run_id, tile.name)
+
+
+def rotation_z(heading_deg: float) -> np.ndarray:
+    """The rotation :func:`placed` applies."""
+    h = np.radians(heading_deg)
+    return np.array([[np.cos(h), -np.sin(h), 0.0], [np.sin(h), np.cos(h), 0.0], [0.0, 0.0, 1.0]])

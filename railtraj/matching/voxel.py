@@ -22,7 +22,7 @@ class VoxelGrid:
     xyz: np.ndarray  # (m, 3) mean of the raw points in each voxel
     count: np.ndarray  # (m,) raw points per voxel
     inverse: np.ndarray  # (n,) voxel index of each raw point
-    keys: np.ndarray  # (m,) sorted int64 voxel keys (see :func:`voxel_keys`)
+    keys: np.ndarray  # (m,) sorted int64 voxel keys (see :func:`pack`); size <= 0: point indices
     origin: np.ndarray  # (3,) corner the integer voxel coordinates count from
 
     def __len__(self) -> int:
@@ -100,3 +100,20 @@ def neighbour_sums(grid: VoxelGrid, values: np.ndarray) -> np.ndarray:
                 idx[(k < target - 1) | (k > target + 1) | (pos + s >= m)] = m
                 out += np.take(padded, idx, axis=0)
     return out
+
+
+def block_covariance(xyz: np.ndarray, grid: VoxelGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point count (m,), mean (m, 3) and covariance (m, 3, 3) of the *raw* points in the
+    3 x 3 x 3 block of voxels around each voxel: a local plane fit that sees every point."""
+    m, inv = len(grid), grid.inverse
+    local = np.asarray(xyz, float) - grid.origin  # small numbers keep the moment sums accurate
+    pairs = [(i, j) for i in range(3) for j in range(i, 3)]
+    cols = [grid.count.astype(float)] + [np.bincount(inv, local[:, k], m) for k in range(3)]
+    cols += [np.bincount(inv, local[:, i] * local[:, j], m) for i, j in pairs]
+    s = neighbour_sums(grid, np.column_stack(cols))
+    n = s[:, 0]
+    mean = s[:, 1:4] / n[:, None]
+    cov = np.empty((m, 3, 3))
+    for c, (i, j) in enumerate(pairs):
+        cov[:, i, j] = cov[:, j, i] = s[:, 4 + c] / n - mean[:, i] * mean[:, j]
+    return n, mean + grid.origin, cov

@@ -46,7 +46,7 @@ def _piecewise(pieces: tuple[tuple[float, float], ...], s: np.ndarray) -> np.nda
     """Value of the piece each chainage falls in (the last piece continues forever)."""
     ends = np.cumsum([length for length, _ in pieces])
     k = np.minimum(np.searchsorted(ends, s, side="right"), len(pieces) - 1)
-    return np.array([value for _, value in pieces])[k]
+    return np.array([value for _, value in pieces], dtype=float)[k]
 
 
 class Centreline:

@@ -1,0 +1,126 @@
+"""The end every voting matcher shares: peaks -> dense check -> alias test -> refine -> ties.
+
+``pair_voting`` (all keypoint pairs) and ``mutual_nn`` (descriptor matches) differ only in
+which pairs vote; what they do with the votes is here, so both refuse the same way.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from railtraj.data import Keypoints, PointTile, TileOffset
+from railtraj.matching.consensus import (
+    Checked,
+    alias_profile,
+    check_peaks,
+    choose,
+    consensus,
+    failed,
+    make_ties,
+    profile_rivals,
+    window_chord,
+)
+from railtraj.matching.refine import directions, sample
+from railtraj.matching.target import cached_target
+from railtraj.matching.voting import Peak, Votes, find_peaks, slices
+
+Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], TileOffset]
+
+
+@dataclass(frozen=True)
+class VoteSettings:
+    inlier_radius: float = 0.1  # m; a pair agrees with a translation this closely
+    n_peaks: int = 5  # distinct vote peaks checked densely
+    min_inliers: int = 5  # votes the best peak needs
+    check_points: int = 20_000  # raw points of tile b for the dense check
+    profile_points: int = 2_000  # of those, slid along the weak axis to find aliases
+    fitness_radius: float = 0.05
+    min_fitness: float = 0.5  # below: no common geometry (no_overlap)
+    ambiguity_ratio: float = 0.8  # misfit best/rival at or above this: ambiguous
+    max_sd: float = 0.03  # m; see builtins.icp
+    target_voxel: float = 0.05
+    tie_positions: str = "offset"
+
+
+def peak_table(checked) -> list[list[float]]:
+    """[dx, dy, dz, votes, fitness] per checked peak, for the report."""
+    return [[*c.peak.d.tolist(), float(c.peak.count), c.fit.fitness] for c in checked]
+
+
+def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints, votes: Votes,
+            s: VoteSettings, refiner: Refiner | None, info: dict) -> TileOffset:
+    """Turn ``votes`` into a TileOffset, refusing (status) rather than guessing."""
+    t0 = time.perf_counter()
+    peaks = find_peaks(votes, s.inlier_radius, s.n_peaks)
+    info.update(pairs=len(votes), background_votes=votes.background(s.inlier_radius))
+    info["timings"]["peaks"] = time.perf_counter() - t0
+    if not peaks or peaks[0].count < s.min_inliers:
+        info["vote_peaks"] = [[*p.d.tolist(), float(p.count), np.nan] for p in peaks]
+        return failed(tile_a, tile_b, "no_consensus", info, peaks[0].d if peaks else None,
+                      inliers=peaks[0].count if peaks else 0)
+    info["peak_ratio"] = peaks[1].count / peaks[0].count if len(peaks) > 1 else 0.0
+    info["vote_slices"] = slices(votes, peaks[0].d, s.inlier_radius)
+    candidates = [p for p in peaks if p.count >= s.min_inliers]
+
+    t1 = time.perf_counter()
+    target = cached_target(tile_a.xyz, s.target_voxel)
+    moving = sample(tile_b.xyz, s.check_points, seed=1)
+    checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
+    best = choose(checked, s.inlier_radius)[0]
+    rivals, info["alias_profile"] = _profile_rivals(target, moving, checked[best], votes, s)
+    checked += rivals
+    best, rival = choose(checked, s.inlier_radius)
+    chosen = checked[best]
+    info.update(vote_peaks=peak_table(checked), chosen_peak=best, rival_misfit_ratio=rival,
+                check_fitness=chosen.fit.fitness)
+    info["timings"]["dense_check"] = time.perf_counter() - t1
+    if chosen.fit.fitness < s.min_fitness:
+        return failed(tile_a, tile_b, "no_overlap", info, chosen.fit.d, inliers=chosen.peak.count)
+    if rival >= s.ambiguity_ratio:
+        return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, inliers=chosen.peak.count)
+
+    if refiner is not None:
+        start = TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=chosen.fit.d, status="ok")
+        out = refiner(tile_a, kp_a, tile_b, kp_b, start)
+        info["timings"].update({f"icp_{k}": v for k, v in out.info.pop("timings", {}).items()})
+        out.info.update(info)
+        return out
+    return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
+
+
+def _profile_rivals(target, moving, best: Checked, votes: Votes, s: VoteSettings) -> tuple[list[Checked], dict]:
+    """The best aliases along the weak axis of the leading hypothesis, checked like vote peaks.
+
+    The profile spans the part of the weak axis inside the search window (one step beyond, so
+    that an alias right at the edge is still a local maximum).
+    """
+    info = best.fit.information
+    axis = np.linalg.eigh(info)[1][:, 0] if np.isfinite(info).all() else np.array([1.0, 0.0, 0.0])
+    lo, hi = window_chord(best.fit.d, axis, votes.center, votes.window)
+    step = s.fitness_radius
+    ts = np.arange(lo - step, hi + 1.5 * step, step)
+    fit = alias_profile(target, sample(moving, s.profile_points, seed=2), best.fit.d, axis, ts,
+                        radius=s.fitness_radius)
+    profile = {"axis": axis.tolist(), "start": float(ts[0]), "step": step, "fitness": fit.tolist()}
+    rivals = [Peak(best.fit.d + t * axis, 0) for t in profile_rivals(ts, fit, 2 * s.inlier_radius, lo, hi)]
+    return check_peaks(target, moving, rivals, fitness_radius=s.fitness_radius), profile
+
+
+def _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s: VoteSettings, info) -> TileOffset:
+    """Without refinement: the vote peak (1-4 cm off in the prototype), its scatter as covariance."""
+    d = chosen.peak.d
+    ia, ib = consensus(votes, d, s.inlier_radius)
+    spread = votes.d[votes.near(d, s.inlier_radius)]
+    cov = np.cov(spread.T) / len(spread) if len(spread) > 3 else np.eye(3) * s.inlier_radius**2
+    dirs = directions(chosen.fit.information)
+    weak_sd = float(np.sqrt(np.linalg.eigvalsh(chosen.fit.cov)[-1]))
+    info.update(information=dirs, weak_sd=weak_sd, fitness=chosen.fit.fitness)
+    if not weak_sd <= s.max_sd:
+        return failed(tile_a, tile_b, "degenerate", info, d, cov, inliers=len(ia))
+    ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, d, s.tie_positions)
+    return TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=d, cov=cov,
+                      inliers=len(ia), status="ok", ties=ties, info=info)
