@@ -136,5 +136,5 @@ def score_against_truth(before: dict[str, Trajectory], after: dict[str, Trajecto
     from railtraj.sim.score import score_trajectories
 
     truth = load_truth(truth_dir)
-    return {"before": score_trajectories(truth.trajectories, before),
-            "after": score_trajectories(truth.trajectories, after)}
+    return {"before": score_trajectories(truth.trajectories, before, truth.chainage),
+            "after": score_trajectories(truth.trajectories, after, truth.chainage)}

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.data import Ties, Trajectory
+from railtraj.georef import PoseInterpolator
 
 
 def distance_stats(d: np.ndarray) -> dict[str, float | int]:
@@ -36,7 +37,8 @@ def moved(points: np.ndarray, times: np.ndarray, before: Trajectory, after: Traj
     """Points georeferenced with ``before`` re-georeferenced with ``after`` (same body vectors)."""
     if len(points) == 0:
         return points
-    return after.body_to_world(times, before.world_to_body(times, points))
+    body = PoseInterpolator(before).world_to_body(times, points)
+    return PoseInterpolator(after).body_to_world(times, body)
 
 
 def tie_residuals(ties: Ties, trajectories: dict[str, Trajectory],

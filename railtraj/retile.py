@@ -10,8 +10,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from railtraj.georef import regeoreference
 from railtraj.io.las import read_tile, write_tile
-from railtraj.qc import moved
 
 log = logging.getLogger(__name__)
 
@@ -20,8 +20,7 @@ def _retile(job: tuple) -> str:
     header, run_id, before, after, out_path = job
     tile = read_tile(header.path, run_id=run_id)
     before.check_covers(tile.gps_time, f"points of {header.path.name}")
-    tile = type(tile)(moved(tile.xyz, tile.gps_time, before, after), tile.gps_time, tile.intensity,
-                      run_id, tile.name)
+    tile = regeoreference(tile, before, after)
     write_tile(out_path, tile, scales=tuple(header.scales), offsets=tuple(header.offsets), crs=header.crs)
     return str(out_path)
 

@@ -9,6 +9,7 @@ from hydra import compose, initialize, initialize_config_dir
 from omegaconf import OmegaConf
 
 import railtraj.cli as cli
+from railtraj.errors import PluginError
 from railtraj.plugins import registry
 from railtraj.stages import STAGE_KINDS
 
@@ -49,7 +50,10 @@ def test_typed_options_are_checked():
     with pytest.raises(ConfigCompositionException):
         _compose(["detector=voxel_corner", "detector.voxel_size=abc"])
     with pytest.raises(ConfigCompositionException):
-        _compose(["detector=voxel_corner", "+detector.bogus=1"])
+        _compose(["detector=voxel_corner", "detector.bogus=1"])
+    # appending an unknown key gets past Hydra (the group node is typed Any) but not the registry
+    with pytest.raises(PluginError, match="has no option bogus"):
+        cli.build_stages(_compose(["detector=voxel_corner", "+detector.bogus=1"]))
     with pytest.raises(ConfigCompositionException):
         _compose(["detector=no_such_detector"])
 
