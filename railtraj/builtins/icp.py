@@ -4,10 +4,14 @@
 ``max_points`` raw points of tile b against local planes of tile a on a 5 cm grid
 (:mod:`railtraj.matching.refine`); it recovers along-track offsets to about a millimetre where
 ribs, boxes or sleepers face along the track. ``method="kiss"``: kiss-icp's point-to-point
-6-DoF registration, which slides along a tunnel (started 0.8 m off it stayed 0.7 m off in the
-prototype); kept as a baseline. Either way the covariance comes from the point-to-plane normal
-matrix at the result, corrected for normal noise, so a featureless stretch shows its weak
-along-track direction. Status: ``no_overlap`` (tiles apart or fitness below ``min_fitness``),
+6-DoF registration (it slides along a tunnel: started 0.8 m off it stayed 0.7 m off in the
+prototype), used for the rotation and a coarse translation, then polished translation-only
+point-to-plane. Either way the covariance comes from the point-to-plane normal matrix at the
+result, corrected for normal noise, so a featureless stretch shows its weak along-track
+direction. A converged fit one sleeper or rib away looks as good as the right one, so by
+default (``alias_check``) tile b is slid along the weak axis across the search window: a
+clearly better alias is taken, an equally good one makes the pair ``ambiguous``.
+Status: ``no_overlap`` (tiles apart or fitness below ``min_fitness``), ``ambiguous``,
 ``degenerate`` (sd along the weakest direction above ``max_sd``), ``ok``. ``info["constraint"]``
 is the weakest information per point: roughly the share of points facing that way.
 """
@@ -16,17 +20,26 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
-from railtraj.matching.consensus import boxes_overlap, consensus, failed, make_ties
+from railtraj.matching.consensus import (
+    Checked,
+    alias_rivals,
+    boxes_overlap,
+    check_peaks,
+    choose,
+    consensus,
+    failed,
+    make_ties,
+)
 from railtraj.matching.refine import Fit, crop, directions, point_to_plane, sample
 from railtraj.matching.target import PlaneTarget, cached_target
-from railtraj.matching.voting import pair_translations
+from railtraj.matching.voting import Peak, pair_translations
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +62,8 @@ class IcpConfig:
     tie_radius: float = 0.1  # m; keypoint pairs this close to agreeing with d become ties
     tie_positions: str = "offset"  # offset | keypoints (see matching.consensus.make_ties)
     kiss_voxel: float = 0.25  # m; kiss-icp map voxel
+    alias_check: bool = True  # slide tile b along the weak axis to find a better or equal alias
+    ambiguity_ratio: float = 0.8  # misfit of the result / of a distinct alias; above: ambiguous
 
 
 class IcpMatcher:
@@ -58,7 +73,8 @@ class IcpMatcher:
                  target_voxel: float = 0.05, max_points: int = 100_000, iterations: int = 20,
                  max_dist: float = 0.25, kernel: float = 0.05, crop_margin: float = 0.3,
                  fitness_radius: float = 0.05, min_fitness: float = 0.5, max_sd: float = 0.03,
-                 tie_radius: float = 0.1, tie_positions: str = "offset", kiss_voxel: float = 0.25) -> None:
+                 tie_radius: float = 0.1, tie_positions: str = "offset", kiss_voxel: float = 0.25,
+                 alias_check: bool = True, ambiguity_ratio: float = 0.8) -> None:
         if method not in ("plane", "kiss"):
             raise ConfigError(f"matcher=icp method={method!r}: choose plane or kiss")
         if tie_positions not in ("offset", "keypoints"):
@@ -68,6 +84,7 @@ class IcpMatcher:
         self.max_dist, self.kernel, self.crop_margin = max_dist, kernel, crop_margin
         self.fitness_radius, self.min_fitness, self.max_sd = fitness_radius, min_fitness, max_sd
         self.tie_radius, self.tie_positions, self.kiss_voxel = tie_radius, tie_positions, kiss_voxel
+        self.alias_check, self.ambiguity_ratio = alias_check, ambiguity_ratio
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:
@@ -84,12 +101,42 @@ class IcpMatcher:
         if len(moving) < 100:
             return failed(tile_a, tile_b, "no_overlap", info)
         t1 = time.perf_counter()
-        fit = self._kiss(tile_a, moving, target, d0) if self.method == "kiss" else point_to_plane(
-            target, moving, d0, translation_only=self.translation_only, iterations=self.iterations,
-            max_dist=self.max_dist, kernel=self.kernel, fitness_radius=self.fitness_radius,
-            max_sd=self.window)
+        fit = self._fit(tile_a, target, moving, d0)
         info["timings"]["refine"] = time.perf_counter() - t1
+        weak_sd = np.sqrt(np.linalg.eigvalsh(fit.cov)[-1])
+        if self.alias_check and fit.fitness >= self.min_fitness and weak_sd <= self.max_sd:
+            t2 = time.perf_counter()
+            fit, rival = self._aliases(tile_a, tile_b, target, moving, fit, d0, info)
+            info["timings"]["alias_check"] = time.perf_counter() - t2
+            if rival >= self.ambiguity_ratio:
+                info["timings"]["total"] = time.perf_counter() - t0
+                return failed(tile_a, tile_b, "ambiguous", info, fit.d, fit.cov)
         return self._result(tile_a, kp_a, tile_b, kp_b, fit, info, t0)
+
+    def _fit(self, tile_a: PointTile, target: PlaneTarget, moving: np.ndarray, d0: np.ndarray) -> Fit:
+        if self.method == "kiss":
+            return self._kiss(tile_a, moving, target, d0)
+        return point_to_plane(target, moving, d0, translation_only=self.translation_only,
+                              iterations=self.iterations, max_dist=self.max_dist, kernel=self.kernel,
+                              fitness_radius=self.fitness_radius, max_sd=self.window)
+
+    def _aliases(self, tile_a, tile_b, target, moving, fit: Fit, d0, info) -> tuple[Fit, float]:
+        """A local optimum one sleeper or rib away looks converged: slide along the weak axis,
+        move to a clearly better alias, and report how close the best distinct rival comes."""
+        small = sample(tile_b.xyz, 20_000, seed=1)
+        here = check_peaks(target, small, [Peak(fit.d, 0)], iterations=0, fitness_radius=self.fitness_radius)
+        here = [Checked(here[0].peak, replace(here[0].fit, information=fit.information))]
+        rivals, info["alias_profile"] = alias_rivals(target, small, here[0], d0, self.window,
+                                                     self.fitness_radius, 2 * self.tie_radius)
+        checked = here + rivals
+        best, rival = choose(checked, self.tie_radius)
+        info["alias_fitness"] = [[*c.fit.d.tolist(), c.fit.fitness] for c in checked]
+        if best != 0:
+            log.debug("icp %s/%s: moved to an alias that fits better", tile_a.name, tile_b.name)
+            info["moved_to_alias"] = (checked[best].fit.d - fit.d).tolist()
+            fit = self._fit(tile_a, target, moving, checked[best].fit.d)
+        info["rival_misfit_ratio"] = rival
+        return fit, rival
 
     def _result(self, tile_a, kp_a, tile_b, kp_b, fit: Fit, info: dict, t0: float) -> TileOffset:
         dirs = directions(fit.information)
@@ -116,7 +163,9 @@ class IcpMatcher:
                           inliers=len(ia), status=status, ties=ties, info=info)
 
     def _kiss(self, tile_a: PointTile, moving: np.ndarray, target: PlaneTarget, d0: np.ndarray) -> Fit:
-        """kiss-icp point-to-point 6-DoF from d0, then the point-to-plane evaluation at its result."""
+        """kiss-icp point-to-point 6-DoF from d0, then a translation-only point-to-plane polish
+        with kiss' rotation held: point-to-point slides along a tunnel (37 mm along-track left
+        on a ray-cast tile where point-to-plane got 4 mm)."""
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
         from kiss_icp.voxelization import voxel_down_sample
@@ -135,9 +184,9 @@ class IcpMatcher:
         center = moving.mean(axis=0)
         d = R @ (center - origin) + t + origin - center  # translation of tile b's centre
         rotated = (moving - center) @ R.T + center
-        ev = point_to_plane(target, rotated, d, iterations=0, max_dist=self.max_dist, kernel=self.kernel,
-                            fitness_radius=self.fitness_radius, max_sd=self.window)
-        return Fit(d, ev.cov, ev.information, ev.sigma, ev.fitness, ev.n_used, 1, True, R, center)
+        polish = point_to_plane(target, rotated, d, iterations=self.iterations, max_dist=self.max_dist,
+                                kernel=self.kernel, fitness_radius=self.fitness_radius, max_sd=self.window)
+        return replace(polish, rotation=R, center=center)
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:

@@ -62,7 +62,8 @@ class PairVotingMatcher:
                                      target_voxel=target_voxel, tie_positions=tie_positions)
         self.icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel,
                               min_fitness=min_fitness, max_sd=max_sd,
-                              tie_radius=inlier_radius, tie_positions=tie_positions) if refine else None
+                              tie_radius=inlier_radius, tie_positions=tie_positions,
+                              alias_check=False) if refine else None
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:

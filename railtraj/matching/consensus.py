@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
-from railtraj.matching.refine import Fit, crop, point_to_plane
+from railtraj.matching.refine import Fit, crop, point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
 from railtraj.matching.voting import Peak, Votes
 
@@ -74,6 +74,24 @@ def profile_rivals(ts: np.ndarray, fit: np.ndarray, exclude: float, lo: float, h
     t = ts[1:-1]
     peaks = np.flatnonzero(inner & (np.abs(t) > exclude) & (t >= lo) & (t <= hi)) + 1
     return ts[peaks[np.argsort(-fit[peaks])][:n]]
+
+
+def alias_rivals(target: PlaneTarget, moving: np.ndarray, best: Checked, center: np.ndarray, window: float,
+                 radius: float = 0.05, exclude: float = 0.2, points: int = 2_000) -> tuple[list[Checked], dict]:
+    """The two best aliases along the weak axis of ``best``, quick-fitted like vote peaks.
+
+    The profile spans the part of the weak axis that lies within ``window`` of ``center`` (one
+    step beyond, so that an alias right at the edge is still a local maximum) and is returned
+    for the report: ``{"axis", "start", "step", "fitness"}``.
+    """
+    info = best.fit.information
+    axis = np.linalg.eigh(info)[1][:, 0] if np.isfinite(info).all() else np.array([1.0, 0.0, 0.0])
+    lo, hi = window_chord(best.fit.d, axis, center, window)
+    ts = np.arange(lo - radius, hi + 1.5 * radius, radius)
+    fit = alias_profile(target, sample(moving, points, seed=2), best.fit.d, axis, ts, radius=radius)
+    profile = {"axis": axis.tolist(), "start": float(ts[0]), "step": radius, "fitness": fit.tolist()}
+    rivals = [Peak(best.fit.d + t * axis, 0) for t in profile_rivals(ts, fit, exclude, lo, hi)]
+    return check_peaks(target, moving, rivals, fitness_radius=radius), profile
 
 
 def choose(checked: list[Checked], distinct: float) -> tuple[int, float]:

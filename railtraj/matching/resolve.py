@@ -14,19 +14,16 @@ import numpy as np
 
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.matching.consensus import (
-    Checked,
-    alias_profile,
+    alias_rivals,
     check_peaks,
     choose,
     consensus,
     failed,
     make_ties,
-    profile_rivals,
-    window_chord,
 )
 from railtraj.matching.refine import directions, sample
 from railtraj.matching.target import cached_target
-from railtraj.matching.voting import Peak, Votes, find_peaks, slices
+from railtraj.matching.voting import Votes, find_peaks, slices
 
 Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], TileOffset]
 
@@ -71,7 +68,8 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     moving = sample(tile_b.xyz, s.check_points, seed=1)
     checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
     best = choose(checked, s.inlier_radius)[0]
-    rivals, info["alias_profile"] = _profile_rivals(target, moving, checked[best], votes, s)
+    rivals, info["alias_profile"] = alias_rivals(target, moving, checked[best], votes.center, votes.window,
+                                                 s.fitness_radius, 2 * s.inlier_radius, s.profile_points)
     checked += rivals
     best, rival = choose(checked, s.inlier_radius)
     chosen = checked[best]
@@ -90,24 +88,6 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         out.info.update(info)
         return out
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
-
-
-def _profile_rivals(target, moving, best: Checked, votes: Votes, s: VoteSettings) -> tuple[list[Checked], dict]:
-    """The best aliases along the weak axis of the leading hypothesis, checked like vote peaks.
-
-    The profile spans the part of the weak axis inside the search window (one step beyond, so
-    that an alias right at the edge is still a local maximum).
-    """
-    info = best.fit.information
-    axis = np.linalg.eigh(info)[1][:, 0] if np.isfinite(info).all() else np.array([1.0, 0.0, 0.0])
-    lo, hi = window_chord(best.fit.d, axis, votes.center, votes.window)
-    step = s.fitness_radius
-    ts = np.arange(lo - step, hi + 1.5 * step, step)
-    fit = alias_profile(target, sample(moving, s.profile_points, seed=2), best.fit.d, axis, ts,
-                        radius=s.fitness_radius)
-    profile = {"axis": axis.tolist(), "start": float(ts[0]), "step": step, "fitness": fit.tolist()}
-    rivals = [Peak(best.fit.d + t * axis, 0) for t in profile_rivals(ts, fit, 2 * s.inlier_radius, lo, hi)]
-    return check_peaks(target, moving, rivals, fitness_radius=s.fitness_radius), profile
 
 
 def _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s: VoteSettings, info) -> TileOffset:

@@ -182,3 +182,15 @@ def test_too_few_keypoints(replica):
     ka, kb = _detect("harris3d", {}, a, b)
     off = registry().create("matcher", "pair_voting", {}).match(a, ka.subset(np.arange(4)), b, kb)
     assert off.status == "few_keypoints" and np.isnan(off.d).all() and len(off.ties) == 0
+
+
+@pytest.mark.parametrize("off_along", [0.65, -1.5])  # one sleeper, one rib away
+def test_icp_started_on_an_alias_finds_the_right_offset(replica, off_along):
+    a, b, truth = replica
+    ka, kb = _detect("harris3d", {}, a, b)
+    start = TileOffset(a.run_id, b.run_id, a.name, b.name, d=truth + off_along * AXIS, status="ok")
+    off = registry().create("matcher", "icp", {}).match(a, ka, b, kb, start)
+    assert off.status == "ok"
+    assert np.abs(off.d - truth).max() < 0.005, (off.d - truth) * 1000
+    without = registry().create("matcher", "icp", {"alias_check": False}).match(a, ka, b, kb, start)
+    assert np.abs(without.d - truth).max() > 0.1  # plain ICP stays on the alias
