@@ -29,7 +29,7 @@ class GeometrySpec:
     tracks: int = 1
     track_spacing: float = 4.0
     rib_spacing: float = 1.5
-    sleeper_spacing: float | None = 0.6
+    sleeper_spacing: float | None = 0.65  # not a divisor of rib_spacing: no exact 3 m alias
     slab_track_in_circular: bool = True
     niche_spacing: float = 150.0
     box_spacing: float = 70.0
