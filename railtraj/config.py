@@ -67,7 +67,7 @@ DEFAULTS: list[Any] = [
     {"detector": "iss"},            # ISS keypoints (thesis' detector)
     {"descriptor": "none"},         # descriptors do not separate repetitive tunnel geometry
     {"matcher": "pair_voting"},     # translation voting + dense check + refinement
-    {"optimizer": "identity"},      # replaced by a real optimizer as it lands
+    {"optimizer": "gtsam"},         # smooth per-run corrections fitted to the ties (GTSAM)
     {"executor": "serial"},         # Open3D already uses every core inside a tile
     {"pipeline": "global"},
     "_self_",
