@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.builtins.icp import IcpMatcher
+from railtraj.builtins.pair_voting import start, vote_setup
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.consensus import boxes_overlap, failed
-from railtraj.matching.resolve import VoteSettings, resolve
+from railtraj.matching.resolve import resolve
 from railtraj.matching.voting import Votes, counts
 
 
@@ -62,30 +62,17 @@ class MutualNnMatcher:
                  min_keypoints: int = 10, min_inliers: int = 3, n_peaks: int = 5, check_points: int = 20_000,
                  min_fitness: float = 0.5, ambiguity_ratio: float = 0.8, max_sd: float = 0.03,
                  refine: bool = True, target_voxel: float = 0.05, tie_positions: str = "offset") -> None:
-        if max_misalignment <= 0 or inlier_radius <= 0:
-            raise ConfigError("matcher=mutual_nn needs max_misalignment > 0 and inlier_radius > 0")
-        if tie_positions not in ("offset", "keypoints"):
-            raise ConfigError(f"tie_positions={tie_positions!r}: choose offset or keypoints")
         self.window, self.top_n, self.min_keypoints = max_misalignment, top_n, min_keypoints
-        self.settings = VoteSettings(inlier_radius=inlier_radius, n_peaks=n_peaks, min_inliers=min_inliers,
-                                     check_points=check_points, min_fitness=min_fitness,
-                                     ambiguity_ratio=ambiguity_ratio, max_sd=max_sd,
-                                     target_voxel=target_voxel, tie_positions=tie_positions)
-        self.icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel,
-                              min_fitness=min_fitness, max_sd=max_sd,
-                              tie_radius=inlier_radius, tie_positions=tie_positions,
-                              alias_check=False) if refine else None
+        self.settings, self.icp = vote_setup("mutual_nn", max_misalignment, inlier_radius, min_inliers, n_peaks,
+                                             check_points, min_fitness, ambiguity_ratio, max_sd, refine,
+                                             target_voxel, tie_positions)
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:
         if kp_a.descriptors is None or kp_b.descriptors is None:
             raise ConfigError("matcher=mutual_nn needs descriptors: use descriptor=fpfh")
         t0 = time.perf_counter()
-        center = np.zeros(3)
-        if initial is not None and np.isfinite(initial.d).all():
-            center = np.asarray(initial.d, float)
-        info: dict = {"timings": {}, "keypoints": [len(kp_a), len(kp_b)], "window": self.window,
-                      "center": center.tolist()}
+        center, info = start(initial, kp_a, kp_b, self.window)
         if min(len(kp_a), len(kp_b)) < self.min_keypoints:
             return failed(tile_a, tile_b, "few_keypoints", info)
         if not boxes_overlap(tile_a, tile_b, center, self.window):

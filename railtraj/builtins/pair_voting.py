@@ -44,6 +44,32 @@ class PairVotingConfig:
     tie_positions: str = "offset"  # offset | keypoints
 
 
+def vote_setup(matcher: str, max_misalignment: float, inlier_radius: float, min_inliers: int, n_peaks: int,
+               check_points: int, min_fitness: float, ambiguity_ratio: float, max_sd: float, refine: bool,
+               target_voxel: float, tie_positions: str) -> tuple[VoteSettings, IcpMatcher | None]:
+    """Check the options shared by the voting matchers; build their settings and refiner."""
+    if max_misalignment <= 0 or inlier_radius <= 0:
+        raise ConfigError(f"matcher={matcher} needs max_misalignment > 0 and inlier_radius > 0")
+    if tie_positions not in ("offset", "keypoints"):
+        raise ConfigError(f"tie_positions={tie_positions!r}: choose offset or keypoints")
+    settings = VoteSettings(inlier_radius=inlier_radius, n_peaks=n_peaks, min_inliers=min_inliers,
+                            check_points=check_points, min_fitness=min_fitness, ambiguity_ratio=ambiguity_ratio,
+                            max_sd=max_sd, target_voxel=target_voxel, tie_positions=tie_positions)
+    icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel, min_fitness=min_fitness,
+                     max_sd=max_sd, tie_radius=inlier_radius, tie_positions=tie_positions,
+                     alias_check=False) if refine else None
+    return settings, icp
+
+
+def start(initial: TileOffset | None, kp_a: Keypoints, kp_b: Keypoints, window: float) -> tuple[np.ndarray, dict]:
+    """Search centre (the initial estimate, or zero) and the diagnostics dict every match starts with."""
+    center = np.zeros(3)
+    if initial is not None and np.isfinite(initial.d).all():
+        center = np.asarray(initial.d, float)
+    return center, {"timings": {}, "keypoints": [len(kp_a), len(kp_b)], "window": window,
+                    "center": center.tolist()}
+
+
 class PairVotingMatcher:
     """Translation voting over all keypoint pairs within the search window (see module docstring)."""
 
@@ -51,28 +77,15 @@ class PairVotingMatcher:
                  min_inliers: int = 5, n_peaks: int = 5, check_points: int = 20_000, min_fitness: float = 0.5,
                  ambiguity_ratio: float = 0.8, max_sd: float = 0.03, refine: bool = True,
                  target_voxel: float = 0.05, tie_positions: str = "offset") -> None:
-        if max_misalignment <= 0 or inlier_radius <= 0:
-            raise ConfigError("matcher=pair_voting needs max_misalignment > 0 and inlier_radius > 0")
-        if tie_positions not in ("offset", "keypoints"):
-            raise ConfigError(f"tie_positions={tie_positions!r}: choose offset or keypoints")
         self.window, self.min_keypoints = max_misalignment, min_keypoints
-        self.settings = VoteSettings(inlier_radius=inlier_radius, n_peaks=n_peaks, min_inliers=min_inliers,
-                                     check_points=check_points, min_fitness=min_fitness,
-                                     ambiguity_ratio=ambiguity_ratio, max_sd=max_sd,
-                                     target_voxel=target_voxel, tie_positions=tie_positions)
-        self.icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel,
-                              min_fitness=min_fitness, max_sd=max_sd,
-                              tie_radius=inlier_radius, tie_positions=tie_positions,
-                              alias_check=False) if refine else None
+        self.settings, self.icp = vote_setup("pair_voting", max_misalignment, inlier_radius, min_inliers, n_peaks,
+                                             check_points, min_fitness, ambiguity_ratio, max_sd, refine,
+                                             target_voxel, tie_positions)
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:
         t0 = time.perf_counter()
-        center = np.zeros(3)
-        if initial is not None and np.isfinite(initial.d).all():
-            center = np.asarray(initial.d, float)
-        info: dict = {"timings": {}, "keypoints": [len(kp_a), len(kp_b)], "window": self.window,
-                      "center": center.tolist()}
+        center, info = start(initial, kp_a, kp_b, self.window)
         if min(len(kp_a), len(kp_b)) < self.min_keypoints:
             return failed(tile_a, tile_b, "few_keypoints", info)
         if not boxes_overlap(tile_a, tile_b, center, self.window):
