@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -94,3 +95,17 @@ def test_malformed_trajectory_is_rejected_and_nothing_half_written(survey, tmp_p
     assert "trajectory.csv" in res.stderr
     assert not (out / "metrics.json").exists()
     assert not list(out.rglob("*.part"))
+
+
+def test_comparative_sweep_runs_all_four_combinations(survey, tmp_path):
+    out = tmp_path / "sweep"
+    res = railtraj("-m", "detector=iss,harris3d", "descriptor=none,fpfh", "pipeline=local", "pipeline.max_pairs=1",
+                   "matcher=pair_voting", "anchors=false", f"survey_dir={survey}", f"out_dir={out}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    jobs = sorted(p.parent.name for p in out.glob("*/metrics.json"))   # named by the overrides
+    combos = {(m.group(1), m.group(2)) for m in (re.search(r"descriptor=(\w+),detector=(\w+)", j) for j in jobs)}
+    assert combos == {("fpfh", "harris3d"), ("fpfh", "iss"), ("none", "harris3d"), ("none", "iss")}
+    for job in jobs:
+        m = json.loads((out / job / "metrics.json").read_text())
+        assert f"detector={m['config']['detector']['name']}" in job
+        assert m["counts"]["tile_pairs"] == 1
