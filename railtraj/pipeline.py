@@ -192,13 +192,23 @@ def match_pair(job: tuple) -> PairResult:
     if ties is not None:
         ties = Ties(pair.run_a, pair.run_b, ties.time_a, ties.time_b, ties.xyz_a, ties.xyz_b, ties.weight)
     info = dict(offset.info, keypoints_a=len(kp_a), keypoints_b=len(kp_b), points_a=len(tile_a),
-                points_b=len(tile_b), seconds=seconds)
+                points_b=len(tile_b), seconds=seconds, **_overlap_times(pair, tile_a, tile_b))
     offset = TileOffset(**names, d=offset.d, cov=offset.cov, inliers=offset.inliers, status=offset.status,
                         ties=ties, info=info)
     rng = np.random.default_rng(0)
     sample = [t_.subset(rng.permutation(len(t_))[:C2C_SAMPLE]) for t_ in (tile_a, tile_b)]
     log.debug("%s/%s vs %s/%s: %s d=%s", *names.values(), offset.status, np.round(offset.d, 4))
     return PairResult(offset, sample[0], sample[1], seconds)
+
+
+def _overlap_times(pair: TilePair, tile_a: PointTile, tile_b: PointTile) -> dict[str, float]:
+    """Median gps_time of each run's points in the pair's overlap: when the offset was observed."""
+    out = {}
+    for key, tile in (("time_a", tile_a), ("time_b", tile_b)):
+        inside = ((tile.xyz[:, :2] >= pair.overlap_min[:2]) & (tile.xyz[:, :2] <= pair.overlap_max[:2])).all(axis=1)
+        times = tile.gps_time[inside] if inside.any() else tile.gps_time
+        out[key] = float(np.median(times)) if len(times) else float("nan")
+    return out
 
 
 def qc_figures(result: PipelineResult) -> dict[str, Any]:

@@ -159,3 +159,12 @@ def failed(tile_a: PointTile, tile_b: PointTile, status: str, info: dict, d: np.
                       cov=np.full((3, 3), np.nan) if cov is None else np.asarray(cov, float),
                       inliers=inliers, status=status, ties=Ties.empty(tile_a.run_id, tile_b.run_id),
                       info=info)
+
+
+def alias_covariance(fit: Fit, window: float) -> np.ndarray:
+    """Covariance of an ``ambiguous`` estimate: the fit's own, plus the whole search window along
+    its weakest direction (the tunnel axis, where the aliases lie). Across and up stay usable."""
+    if not (np.isfinite(fit.information).all() and np.isfinite(fit.cov).all()):
+        return np.full((3, 3), np.nan)
+    axis = np.linalg.eigh(fit.information)[1][:, 0]
+    return fit.cov + window**2 * np.outer(axis, axis)

@@ -14,6 +14,7 @@ import numpy as np
 
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.matching.consensus import (
+    alias_covariance,
     alias_rivals,
     check_peaks,
     choose,
@@ -79,7 +80,8 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     if chosen.fit.fitness < s.min_fitness:
         return failed(tile_a, tile_b, "no_overlap", info, chosen.fit.d, inliers=chosen.peak.count)
     if rival >= s.ambiguity_ratio:
-        return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, inliers=chosen.peak.count)
+        return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
+                      inliers=chosen.peak.count)
 
     if refiner is not None:
         start = TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=chosen.fit.d, status="ok")

@@ -57,3 +57,27 @@ def test_identity_returns_input():
     a = _straight_run("a", sd=0.01)
     out = registry().create("optimizer", "identity", {}).optimize({"a": a}, [], [])
     assert out["a"] is a
+
+
+def test_gtsam_uses_degenerate_offsets_only_across_and_up():
+    from railtraj.data import TileOffset
+
+    a = _straight_run("a", sd=0.01)
+    b = _straight_run("b", sd=1.0, offset=(0.5, 0.30, -0.10), t0=5000.0)   # x is along the track
+    offsets = []
+    for s in np.arange(50, 550, 25.0):                                     # one tile pair every 25 m
+        ta, tb = a.time[0] + s / 10, b.time[0] + s / 10
+        # the matcher saw the true across/up offset but could not tell along-track (alias 1.5 m off)
+        d = np.array([-0.5 + 1.5, -0.30, 0.10])
+        cov = np.diag([3.0**2, 0.005**2, 0.005**2])
+        offsets.append(TileOffset("a", "b", f"t{s}", f"t{s}", d=d, cov=cov, status="degenerate",
+                                  info={"time_a": ta, "time_b": tb}))
+    opt = registry().create("optimizer", "gtsam", {})
+    out = opt.optimize({"a": a, "b": b}, [], offsets)
+    mid = (b.time > b.time[0] + 10) & (b.time < b.time[0] + 50)
+    corr = out["b"].xyz[mid] - b.xyz[mid]
+    np.testing.assert_allclose(corr[:, 1:], np.tile([-0.30, 0.10], (mid.sum(), 1)), atol=0.01)
+    assert np.abs(corr[:, 0]).max() < 0.3        # along-track: the alias is not believed
+    assert out["b"].sd[mid, 1].max() < 0.05 and out["b"].sd[mid, 0].min() > 3 * out["b"].sd[mid, 1].max()
+    off = registry().create("optimizer", "gtsam", {"use_weak_offsets": False}).optimize({"a": a, "b": b}, [], offsets)
+    np.testing.assert_array_equal(off["b"].xyz, b.xyz)
