@@ -26,10 +26,12 @@ ANCHOR_INTERVAL_S = 0.5
 
 
 def anchor_rows(result: PipelineResult) -> dict[str, np.ndarray]:
-    """Anchor observations: corrected positions of each run at the times its ties were seen."""
+    """Anchor observations: corrected positions (with posterior sd) of each run at the times
+    where it was tied to another run, by a tie feature or a tile-pair offset."""
+    observed = _observation_times(result)
     cols: dict[str, list] = {k: [] for k in ("run_id", "time", "x", "y", "z", "sd_x", "sd_y", "sd_z")}
     for run_id, traj in sorted(result.corrected.items()):
-        times = [t.time_a for t in result.ties if t.run_a == run_id] + [t.time_b for t in result.ties if t.run_b == run_id]
+        times = observed.get(run_id, [])
         if not times:
             continue
         t = np.concatenate(times)
@@ -45,6 +47,20 @@ def anchor_rows(result: PipelineResult) -> dict[str, np.ndarray]:
             cols[f"sd_{axis}"].append(sd[:, k])
     out = {k: (np.asarray(v, dtype=object) if k == "run_id" else (np.concatenate(v) if v else np.zeros(0)))
            for k, v in cols.items()}
+    return out
+
+
+def _observation_times(result: PipelineResult) -> dict[str, list[np.ndarray]]:
+    """Per run, the gps_times of its ties and of the tile-pair offsets that gave usable constraints."""
+    out: dict[str, list[np.ndarray]] = {}
+    for t in result.ties:
+        out.setdefault(t.run_a, []).append(t.time_a)
+        out.setdefault(t.run_b, []).append(t.time_b)
+    for o in result.offsets:
+        if o.status in ("ok", "degenerate", "ambiguous") and np.isfinite(o.cov).all():
+            for run, key in ((o.run_a, "time_a"), (o.run_b, "time_b")):
+                if np.isfinite(o.info.get(key, np.nan)):
+                    out.setdefault(run, []).append(np.array([o.info[key]]))
     return out
 
 
@@ -76,7 +92,7 @@ def _write_anchors(result: PipelineResult, out_dir: Path, mode: str, notes: list
         return 0
     rows = anchor_rows(result)
     if len(rows["time"]) == 0:
-        notes.append("anchors.csv not written: no reliable ties, so no anchor observations")
+        notes.append("anchors.csv not written: no tile pair was matched, so no anchor observations")
         return 0
     from railtraj.crs import to_etrs89
     try:
