@@ -33,19 +33,20 @@ def _plots(result) -> list[tuple[str, str]]:
     import matplotlib.pyplot as plt
 
     out = []
-    ok = [o for o in result.offsets if o.ok]
-    if ok:
+    shown = [o for o in result.offsets if np.isfinite(o.d).all()]
+    if shown:
         fig, ax = plt.subplots(figsize=(8, 3))
-        t = np.arange(len(ok))
-        d = np.array([o.d for o in ok])
-        sd = np.array([o.sd for o in ok])
-        for k, lab in enumerate("xyz"):
-            ax.errorbar(t, d[:, k], yerr=sd[:, k], fmt="o", ms=3, label=f"d{lab}")
-        ax.set_xlabel("matched tile pair")
+        t = np.arange(len(shown))
+        d = np.array([o.d for o in shown])
+        ok = np.array([o.ok for o in shown])
+        for k, (lab, col) in enumerate(zip("xyz", ("C0", "C1", "C2"), strict=True)):
+            ax.plot(t[ok], d[ok, k], "o", ms=4, color=col, label=f"d{lab} (ok)")
+            ax.plot(t[~ok], d[~ok, k], "o", ms=4, mfc="none", color=col, label=f"d{lab} (not ok)")
+        ax.set_xlabel("tile pair (offsets.csv order)")
         ax.set_ylabel("offset run_b -> run_a [m]")
-        ax.legend(ncol=3)
+        ax.legend(ncol=3, fontsize=7)
         ax.grid(alpha=0.3)
-        out.append(("Tile-pair offsets (with 1-sigma)", _figure_to_img(fig)))
+        out.append(("Tile-pair offsets (hollow: degenerate, ambiguous or refused)", _figure_to_img(fig)))
     fig, ax = plt.subplots(figsize=(8, 3))
     for run_id, traj in sorted(result.trajectories.items()):
         corr = result.corrected[run_id].xyz - traj.xyz
