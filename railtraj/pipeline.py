@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from railtraj.consistency import check_survey
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset, Trajectory
 from railtraj.io.las import read_tile
 from railtraj.io.survey import Survey, TilePair, find_overlaps, open_survey, require_overlaps
@@ -88,6 +89,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     survey = open_survey(survey_dir)
     trajectories = {r: survey.load_trajectory(r, crs=options.crs, grid_dir=options.grid_dir)
                     for r in survey.runs}
+    check_survey(survey, trajectories, options.crs)
     pairs = select_pairs(survey, options)
     clock["load"] = time.perf_counter() - t0
     log.info("survey %s: %d runs, %d tiles, %d tile pairs to match", survey.root, len(survey.runs),

@@ -117,3 +117,22 @@ def test_comparative_sweep_runs_all_four_combinations(survey, tmp_path):
         m = json.loads((out / job / "metrics.json").read_text())
         assert f"detector={m['config']['detector']['name']}" in job
         assert m["counts"]["tile_pairs"] == 1
+
+
+def test_tiles_in_another_crs_are_rejected(survey, tmp_path):
+    res = railtraj(f"survey_dir={survey}", f"out_dir={tmp_path / 'o'}", "crs=EPSG:32630")
+    assert res.returncode == 2
+    assert "British National Grid" in res.stderr and "crs=" in res.stderr
+
+
+def test_trajectory_far_from_its_tiles_is_rejected(survey, tmp_path):
+    bad = tmp_path / "moved"
+    shutil.copytree(survey, bad)
+    run = sorted(p for p in bad.iterdir() if p.is_dir())[0]
+    traj = read_trajectory_csv(run / "trajectory.csv", run.name)
+    from railtraj.io.trajectory_csv import write_trajectory_csv
+
+    write_trajectory_csv(run / "trajectory.csv", traj.with_positions(traj.xyz + [5000.0, 0.0, 0.0]))
+    res = railtraj(f"survey_dir={bad}", f"out_dir={tmp_path / 'o'}")
+    assert res.returncode == 2
+    assert "from run" in res.stderr and "same CRS" in res.stderr
