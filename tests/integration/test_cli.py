@@ -136,3 +136,19 @@ def test_trajectory_far_from_its_tiles_is_rejected(survey, tmp_path):
     res = railtraj(f"survey_dir={bad}", f"out_dir={tmp_path / 'o'}")
     assert res.returncode == 2
     assert "from run" in res.stderr and "same CRS" in res.stderr
+
+
+def test_write_tiles_regeoreferences_every_tile(survey, tmp_path):
+    from railtraj.io.las import read_tile
+
+    out = tmp_path / "tiles"
+    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", "write_tiles=true", "optimizer=identity",
+                   "pipeline.max_pairs=1", "anchors=false")
+    assert res.returncode == 0, res.stderr[-3000:]
+    for run in sorted(p for p in survey.iterdir() if p.is_dir()):
+        inputs = sorted((run / "tiles").glob("*.la[sz]"))
+        written = sorted((out / "tiles" / run.name).glob("*.laz"))
+        assert [p.stem for p in written] == [p.stem for p in inputs]
+        a, b = read_tile(inputs[0]), read_tile(written[0])      # identity: the same cloud back
+        np.testing.assert_array_equal(a.gps_time, b.gps_time)
+        assert np.abs(a.xyz - b.xyz).max() <= 0.0011
