@@ -113,13 +113,21 @@ class PoseInterpolator:
         return self._world[idx] @ step, rate
 
 
-def regeoreference(tile: PointTile, from_traj: Trajectory, to_traj: Trajectory) -> PointTile:
-    """Move a tile's points from the trajectory they were georeferenced with to another one.
+def regeoreference_points(xyz: np.ndarray, times: np.ndarray, from_traj: Trajectory,
+                          to_traj: Trajectory) -> np.ndarray:
+    """Points georeferenced with ``from_traj`` re-georeferenced with ``to_traj``.
 
     ``body = from.world_to_body(t, p); world = to.body_to_world(t, body)``, per point at its own
-    gps_time. Both trajectories must cover the tile's gps_time span.
+    gps_time. Both trajectories must cover the times.
     """
+    if len(xyz) == 0:
+        return xyz
+    body = PoseInterpolator(from_traj).world_to_body(times, xyz)
+    return PoseInterpolator(to_traj).body_to_world(times, body)
+
+
+def regeoreference(tile: PointTile, from_traj: Trajectory, to_traj: Trajectory) -> PointTile:
+    """A tile's points moved from the trajectory they were georeferenced with to another one."""
     if len(tile) == 0:
         return tile
-    body = PoseInterpolator(from_traj).world_to_body(tile.gps_time, tile.xyz)
-    return replace(tile, xyz=PoseInterpolator(to_traj).body_to_world(tile.gps_time, body))
+    return replace(tile, xyz=regeoreference_points(tile.xyz, tile.gps_time, from_traj, to_traj))

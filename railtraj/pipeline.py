@@ -20,9 +20,11 @@ import numpy as np
 
 from railtraj.consistency import check_survey
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset, Trajectory
+from railtraj.errors import ConfigError
+from railtraj.georef import regeoreference_points
 from railtraj.io.las import read_tile
 from railtraj.io.survey import Survey, TilePair, find_overlaps, open_survey, require_overlaps
-from railtraj.qc import c2c_distances, distance_stats, moved, tie_residuals
+from railtraj.qc import c2c_distances, distance_stats, tie_residuals
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +126,11 @@ def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
     if options.pairs == "reference":
         ref = options.reference_run or sorted(survey.runs)[0]
         if ref not in survey.runs:
-            from railtraj.errors import ConfigError
             raise ConfigError(f"reference_run {ref!r} is not a run of the survey; runs: {', '.join(sorted(survey.runs))}")
         pairs = [p for p in pairs if ref in (p.run_a, p.run_b)]
     if options.tile:
         pairs = [p for p in pairs if _pair_at(p, options.tile)]
         if not pairs:
-            from railtraj.errors import ConfigError
             raise ConfigError(f"no overlapping tile pair at tile={options.tile!r}; give a tile file name "
                               "(e.g. 530000_180025.laz) or 'x,y' inside a tile of two runs")
     if options.max_pairs > 0:
@@ -225,8 +225,8 @@ def qc_figures(result: PipelineResult) -> dict[str, Any]:
         if len(a) == 0 or len(b) == 0:
             continue
         db = c2c_distances(b.xyz, a.xyz)
-        ma = moved(a.xyz, a.gps_time, result.trajectories[a.run_id], result.corrected[a.run_id])
-        mb = moved(b.xyz, b.gps_time, result.trajectories[b.run_id], result.corrected[b.run_id])
+        ma = regeoreference_points(a.xyz, a.gps_time, result.trajectories[a.run_id], result.corrected[a.run_id])
+        mb = regeoreference_points(b.xyz, b.gps_time, result.trajectories[b.run_id], result.corrected[b.run_id])
         da = c2c_distances(mb, ma)
         c2c_before.append(db)
         c2c_after.append(da)

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.data import Ties, Trajectory
-from railtraj.georef import PoseInterpolator
+from railtraj.georef import regeoreference_points
 
 
 def distance_stats(d: np.ndarray) -> dict[str, float | int]:
@@ -33,19 +33,11 @@ def c2c_distances(query: np.ndarray, reference: np.ndarray, max_dist: float = 1.
     return d[np.isfinite(d)]
 
 
-def moved(points: np.ndarray, times: np.ndarray, before: Trajectory, after: Trajectory) -> np.ndarray:
-    """Points georeferenced with ``before`` re-georeferenced with ``after`` (same body vectors)."""
-    if len(points) == 0:
-        return points
-    body = PoseInterpolator(before).world_to_body(times, points)
-    return PoseInterpolator(after).body_to_world(times, body)
-
-
 def tie_residuals(ties: Ties, trajectories: dict[str, Trajectory],
                   corrected: dict[str, Trajectory] | None = None) -> np.ndarray:
     """3-D distances between the two copies of every tie, optionally after correction."""
     xa, xb = ties.xyz_a, ties.xyz_b
     if corrected is not None:
-        xa = moved(xa, ties.time_a, trajectories[ties.run_a], corrected[ties.run_a])
-        xb = moved(xb, ties.time_b, trajectories[ties.run_b], corrected[ties.run_b])
+        xa = regeoreference_points(xa, ties.time_a, trajectories[ties.run_a], corrected[ties.run_a])
+        xb = regeoreference_points(xb, ties.time_b, trajectories[ties.run_b], corrected[ties.run_b])
     return np.linalg.norm(xa - xb, axis=1)

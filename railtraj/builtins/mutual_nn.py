@@ -18,12 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.builtins.pair_voting import start, vote_setup
+from railtraj.builtins.pair_voting import finish, start, vote_setup
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.consensus import boxes_overlap, failed
-from railtraj.matching.resolve import resolve
 from railtraj.matching.voting import Votes, counts
 
 
@@ -85,10 +84,7 @@ class MutualNnMatcher:
         top = np.argsort(-ranked, kind="stable")[: self.top_n]
         info.update(mutual_pairs=len(ia), ranking=np.c_[votes.d[top], ranked[top]].tolist())
         info["timings"]["match_descriptors"] = time.perf_counter() - t0
-        out = resolve(tile_a, kp_a, tile_b, kp_b, votes, self.settings,
-                      self.icp.match if self.icp is not None else None, info)
-        out.info["timings"]["total"] = time.perf_counter() - t0
-        return out
+        return finish(tile_a, kp_a, tile_b, kp_b, votes, self.settings, self.icp, info, t0)
 
 
 @hookimpl

@@ -70,6 +70,14 @@ def start(initial: TileOffset | None, kp_a: Keypoints, kp_b: Keypoints, window: 
                     "center": center.tolist()}
 
 
+def finish(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints, votes, settings: VoteSettings,
+           icp: IcpMatcher | None, info: dict, t0: float) -> TileOffset:
+    """Resolve the votes (dense check, refinement) and record the matcher's total time."""
+    out = resolve(tile_a, kp_a, tile_b, kp_b, votes, settings, icp.match if icp is not None else None, info)
+    out.info["timings"]["total"] = time.perf_counter() - t0
+    return out
+
+
 class PairVotingMatcher:
     """Translation voting over all keypoint pairs within the search window (see module docstring)."""
 
@@ -92,10 +100,7 @@ class PairVotingMatcher:
             return failed(tile_a, tile_b, "no_overlap", info)
         votes = pair_translations(kp_a.xyz, kp_b.xyz, center, self.window)
         info["timings"]["vote"] = time.perf_counter() - t0
-        out = resolve(tile_a, kp_a, tile_b, kp_b, votes, self.settings,
-                      self.icp.match if self.icp is not None else None, info)
-        out.info["timings"]["total"] = time.perf_counter() - t0
-        return out
+        return finish(tile_a, kp_a, tile_b, kp_b, votes, self.settings, self.icp, info, t0)
 
 
 @hookimpl
