@@ -114,15 +114,18 @@ def choose(checked: list[Checked], distinct: float) -> tuple[int, float]:
 def consensus(votes: Votes, d: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Keypoint pairs (ia, ib) that agree with ``d`` within ``radius``, each keypoint used once.
 
-    A keypoint in several agreeing pairs keeps the pair closest to ``d``.
+    ``d`` is one translation, or one per vote (a line of offsets along the track). A keypoint
+    in several agreeing pairs keeps the pair closest to ``d``.
     """
-    k = votes.near(d, radius)
+    d = np.asarray(d, float)
+    expected = np.broadcast_to(d, votes.d.shape)
+    k = np.flatnonzero(((votes.d - expected) ** 2).sum(axis=1) <= radius**2)
     if len(k) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    err = ((votes.d[k] - d) ** 2).sum(axis=1)
+    err = ((votes.d[k] - expected[k]) ** 2).sum(axis=1)
     k = k[np.argsort(err, kind="stable")]
     k = k[np.unique(votes.ib[k], return_index=True)[1]]
-    err = ((votes.d[k] - d) ** 2).sum(axis=1)
+    err = ((votes.d[k] - expected[k]) ** 2).sum(axis=1)
     k = k[np.argsort(err, kind="stable")]
     k = k[np.unique(votes.ia[k], return_index=True)[1]]
     return votes.ia[k], votes.ib[k]
@@ -132,8 +135,8 @@ def make_ties(tile_a: PointTile, tile_b: PointTile, kp_a: Keypoints, kp_b: Keypo
               ib: np.ndarray, d: np.ndarray, positions: str = "offset") -> Ties:
     """Ties of the consensus pairs; weights 1/n so that one tile pair weighs one in total.
 
-    ``positions="offset"``: xyz_b is run b's keypoint and xyz_a = xyz_b + d, so every tie agrees
-    with the refined offset (keypoints of two runs are the same object only to a voxel or so;
+    ``positions="offset"``: xyz_b is run b's keypoint and xyz_a = xyz_b + d (``d`` one offset or
+    one per tie), so every tie agrees with the refined offset (keypoints of two runs are the same object only to a voxel or so;
     their raw difference scatters by centimetres). ``"keypoints"``: both runs' keypoint positions
     as detected (the thesis). Times are always the two keypoints' own gps_times.
     """

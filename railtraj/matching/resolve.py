@@ -22,7 +22,8 @@ from railtraj.matching.consensus import (
     failed,
     make_ties,
 )
-from railtraj.matching.refine import directions, sample
+from railtraj.matching.piecewise import alias_ratio, piecewise_fit
+from railtraj.matching.refine import crop, directions, sample
 from railtraj.matching.target import cached_target
 from railtraj.matching.voting import Votes, find_peaks, slices
 
@@ -42,6 +43,7 @@ class VoteSettings:
     max_sd: float = 0.03  # m; see builtins.icp
     target_voxel: float = 0.05
     tie_positions: str = "offset"
+    window_length: float = 5.0  # m; > 0: refine as a line of offsets along the track (piecewise)
 
 
 def peak_table(checked) -> list[list[float]]:
@@ -79,6 +81,8 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     info["timings"]["dense_check"] = time.perf_counter() - t1
     if chosen.fit.fitness < s.min_fitness:
         return failed(tile_a, tile_b, "no_overlap", info, chosen.fit.d, inliers=chosen.peak.count)
+    if refiner is not None and s.window_length > 0:
+        return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
     if rival >= s.ambiguity_ratio:
         return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
@@ -90,6 +94,45 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         out.info.update(info)
         return out
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
+
+
+def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info) -> TileOffset:
+    """Refine as a line of offsets along the track (:mod:`railtraj.matching.piecewise`), then
+    judge it: ``ambiguous`` if an along-track alias of the line fits nearly as well,
+    ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction, else ``ok`` with ties
+    whose offsets follow the line."""
+    t0 = time.perf_counter()
+    target = cached_target(tile_a.xyz, s.target_voxel)
+    moving = crop(target, tile_b.xyz, chosen.fit.d, 0.3)
+    fit = piecewise_fit(target, tile_a.xyz, moving, chosen.fit.d, s.window_length, chosen.fit.information)
+    if fit is None:
+        return failed(tile_a, tile_b, "degenerate", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
+                      inliers=chosen.peak.count)
+    rival, shift, info["alias_profile"] = alias_ratio(target, moving, fit, votes.center, votes.window,
+                                                      s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
+    if rival * s.ambiguity_ratio >= 1.0:  # an alias fits clearly better: the votes chose wrong
+        start = fit.d_ref + shift * fit.axis
+        moving = crop(target, tile_b.xyz, start, 0.3)
+        moved = piecewise_fit(target, tile_a.xyz, moving, start, s.window_length, chosen.fit.information)
+        if moved is not None:
+            info["moved_to_alias"] = (moved.d_ref - fit.d_ref).tolist()
+            fit = moved
+            rival, _, info["alias_profile"] = alias_ratio(target, moving, fit, votes.center, votes.window,
+                                                          s.fitness_radius, 2 * s.inlier_radius,
+                                                          2 * s.profile_points)
+    info["timings"]["windows"] = time.perf_counter() - t0
+    sd = np.sqrt(np.maximum(np.linalg.eigvalsh(fit.cov), 0.0))
+    info.update(rival_misfit_ratio=rival, piecewise=fit.summary(), weak_sd=float(sd[-1]), fitness=chosen.fit.fitness,
+                information=directions(np.linalg.inv(fit.cov)))
+    ia, ib = consensus(votes, fit.at(kp_b.xyz[votes.ib]), s.inlier_radius)
+    if rival >= s.ambiguity_ratio:
+        cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
+        return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
+    if not sd[-1] <= s.max_sd:
+        return failed(tile_a, tile_b, "degenerate", info, fit.d_ref, fit.cov, inliers=len(ia))
+    ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, fit.at(kp_b.xyz[ib]), s.tie_positions)
+    return TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=fit.d_ref, cov=fit.cov,
+                      inliers=len(ia), status="ok", ties=ties, info=info)
 
 
 def _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s: VoteSettings, info) -> TileOffset:

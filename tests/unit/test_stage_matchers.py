@@ -52,7 +52,9 @@ def _detect(name, options, *tiles):
 def _check_ties(off: TileOffset, a: PointTile, b: PointTile):
     ties = off.ties
     assert len(ties) == off.inliers >= 5
-    np.testing.assert_allclose(ties.xyz_a - ties.xyz_b, np.broadcast_to(off.d, ties.xyz_a.shape), atol=1e-9)
+    # a pure translation: the line of offsets along the track is flat, so every tie carries
+    # (nearly) the tile pair's offset
+    np.testing.assert_allclose(ties.xyz_a - ties.xyz_b, np.broadcast_to(off.d, ties.xyz_a.shape), atol=3e-3)
     assert ties.run_a == a.run_id and ties.run_b == b.run_id
     np.testing.assert_allclose(ties.weight.sum(), 1.0)
     # each tie's times are those of points measured where the feature is, in its own run

@@ -1,0 +1,68 @@
+"""The line of offsets along the track (matching.piecewise): known answers.
+
+Run b is run a's tunnel stretched and bent as INS drift does it: its offset to run a changes by
+millimetres per metre along the track. A single translation cannot describe that; the line
+must, at every point of the overlap.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from railtraj.matching.piecewise import fit_line, piecewise_fit, track_frame
+from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
+from railtraj.matching.target import build_target
+
+AXIS = np.array([1.0, 0.0, 0.0])
+
+
+def test_fit_line_recovers_a_line_and_drops_a_window_on_an_alias():
+    s = np.arange(-12.5, 12.6, 5.0)
+    d_ref, grad = np.array([0.3, -0.2, 0.05]), np.array([0.008, -0.004, 0.001])
+    d = d_ref + s[:, None] * grad
+    d[2, 0] += 0.65  # one window locked onto the next sleeper
+    windows = np.column_stack([s, d])
+    got_ref, got_grad, cov, used, sd = fit_line(windows, AXIS, 0.0)
+    assert used.tolist() == [True, True, False, True, True, True]
+    np.testing.assert_allclose(got_ref, d_ref, atol=1e-9)
+    np.testing.assert_allclose(got_grad, grad, atol=1e-9)
+    # a perfect line still reports the floor sd (1 cm along per window over 5 windows)
+    assert np.sqrt(cov[0, 0]) == pytest.approx(0.010 / np.sqrt(5), rel=0.01)
+
+
+def test_fit_line_with_one_window_gives_that_offset_and_no_gradient():
+    d_ref, grad, cov, used, _ = fit_line(np.array([[2.0, 0.1, 0.2, 0.3]]), AXIS, 2.0)
+    np.testing.assert_allclose(d_ref, [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(grad, 0.0)
+    assert used.all() and np.isfinite(cov).all()
+
+
+@pytest.fixture(scope="module")
+def stretched():
+    """Run a (24 m of ribbed tunnel) and run b drifting along it: b = a - d(x), where d(x) goes
+    from d0 - 12 g to d0 + 12 g (+-9.6 cm along, -+4.8 cm across, +-1.2 cm up)."""
+    a = tunnel_tile(0, 24, density=800, noise=0.005, seed=0)
+    d0, g = np.array([0.35, 0.10, -0.03]), np.array([0.008, -0.004, 0.001])
+    x = a.xyz[:, 0] - 12.0
+    local_d = d0 + x[:, None] * g
+    rng = np.random.default_rng(5)
+    b_xyz = a.xyz - local_d + rng.normal(0, 0.005, a.xyz.shape)
+    b = type(a)(b_xyz, a.gps_time, run_id="B", name="B")
+    R = rotation_z(30)
+    return placed(a), placed(b), (local_d @ R.T)
+
+
+def test_piecewise_fit_follows_a_stretched_run_to_millimetres(stretched):
+    a, b, true_d = stretched
+    target = build_target(a.xyz)
+    start = true_d.mean(axis=0) + rotation_z(30) @ [0.04, 0.0, 0.0]  # 4 cm off along the track
+    inside = target.inside(b.xyz + start, 0.3)
+    fit = piecewise_fit(target, a.xyz, b.xyz[inside], start, length=5.0)
+    assert fit is not None and fit.n_used >= 3
+    err = fit.at(b.xyz[inside]) - true_d[inside]
+    along, across, up = np.abs(err @ track_frame(fit.axis).T).max(axis=0)
+    assert along < 0.005 and across < 0.003 and up < 0.003
+    np.testing.assert_allclose(abs(fit.axis @ rotation_z(30) @ [1.0, 0, 0]), 1.0, atol=1e-4)
+    # a rigid translation cannot: the true offset varies by 19 cm along this overlap
+    assert np.ptp(true_d[inside] @ fit.axis) > 0.15
