@@ -135,7 +135,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         "notes": notes,
     }
     if truth_dir is not None and truth_dir.exists():
-        metrics["truth"] = score_against_truth(result.trajectories, result.corrected, truth_dir)
+        metrics["truth"] = score_against_truth(result.trajectories, result.corrected, truth_dir, result.offsets)
     from railtraj.plugins import plugin_manager
     extra = {}
     for part in plugin_manager().hook.railtraj_metrics(result=result):
@@ -146,11 +146,16 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
     return metrics
 
 
-def score_against_truth(before: dict[str, Trajectory], after: dict[str, Trajectory], truth_dir: Path) -> dict:
-    """Absolute errors of the input and corrected trajectories against the simulator's truth."""
+def score_against_truth(before: dict[str, Trajectory], after: dict[str, Trajectory], truth_dir: Path,
+                        offsets: list | None = None) -> dict:
+    """Absolute errors of the input and corrected trajectories against the simulator's truth,
+    and of the ok tile-pair offsets (at their ties) against the true offsets."""
     from railtraj.sim import load_truth
-    from railtraj.sim.score import score_trajectories
+    from railtraj.sim.score import score_offsets, score_trajectories
 
     truth = load_truth(truth_dir)
-    return {"before": score_trajectories(truth.trajectories, before, truth.chainage),
-            "after": score_trajectories(truth.trajectories, after, truth.chainage)}
+    scores = {"before": score_trajectories(truth.trajectories, before, truth.chainage),
+              "after": score_trajectories(truth.trajectories, after, truth.chainage)}
+    if offsets is not None:
+        scores["tile_offsets"] = score_offsets(truth.trajectories, before, offsets)
+    return scores

@@ -193,8 +193,10 @@ def match_pair(job: tuple) -> PairResult:
     ties = offset.ties
     if ties is not None:
         ties = Ties(pair.run_a, pair.run_b, ties.time_a, ties.time_b, ties.xyz_a, ties.xyz_b, ties.weight)
+    times = _overlap_times(pair, tile_a, tile_b)  # unless the matcher says where it observed the offset
+    times.update({k: offset.info[k] for k in times if np.isfinite(offset.info.get(k, np.nan))})
     info = dict(offset.info, keypoints_a=len(kp_a), keypoints_b=len(kp_b), points_a=len(tile_a),
-                points_b=len(tile_b), seconds=seconds, **_overlap_times(pair, tile_a, tile_b))
+                points_b=len(tile_b), seconds=seconds, **times)
     offset = TileOffset(**names, d=offset.d, cov=offset.cov, inliers=offset.inliers, status=offset.status,
                         ties=ties, info=info)
     rng = np.random.default_rng(0)

@@ -42,7 +42,8 @@ class MutualNnConfig:
     refine: bool = True
     target_voxel: float = 0.05
     tie_positions: str = "offset"  # offset | keypoints
-    window_length: float = 5.0  # m; refine per window along the track, fit a line (0: one rigid ICP)
+    window_length: float = 5.0  # m; refine per window along the track, fit a curve (0: one rigid ICP)
+    min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
 
 
 def mutual_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,11 +63,11 @@ class MutualNnMatcher:
                  min_keypoints: int = 10, min_inliers: int = 3, n_peaks: int = 5, check_points: int = 20_000,
                  min_fitness: float = 0.5, ambiguity_ratio: float = 0.8, max_sd: float = 0.01,
                  refine: bool = True, target_voxel: float = 0.05, tie_positions: str = "offset",
-                 window_length: float = 5.0) -> None:
+                 window_length: float = 5.0, min_windows: int = 4) -> None:
         self.window, self.top_n, self.min_keypoints = max_misalignment, top_n, min_keypoints
         self.settings, self.icp = vote_setup("mutual_nn", max_misalignment, inlier_radius, min_inliers, n_peaks,
                                              check_points, min_fitness, ambiguity_ratio, max_sd, refine,
-                                             target_voxel, tie_positions, window_length)
+                                             target_voxel, tie_positions, window_length, min_windows)
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:

@@ -42,12 +42,13 @@ class PairVotingConfig:
     refine: bool = True  # point-to-plane refinement with the icp matcher
     target_voxel: float = 0.05  # m; reference grid for the check and the refinement
     tie_positions: str = "offset"  # offset | keypoints
-    window_length: float = 5.0  # m; refine per window along the track, fit a line (0: one rigid ICP)
+    window_length: float = 5.0  # m; refine per window along the track, fit a curve (0: one rigid ICP)
+    min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
 
 
 def vote_setup(matcher: str, max_misalignment: float, inlier_radius: float, min_inliers: int, n_peaks: int,
                check_points: int, min_fitness: float, ambiguity_ratio: float, max_sd: float, refine: bool,
-               target_voxel: float, tie_positions: str, window_length: float = 5.0
+               target_voxel: float, tie_positions: str, window_length: float = 5.0, min_windows: int = 4
                ) -> tuple[VoteSettings, IcpMatcher | None]:
     """Check the options shared by the voting matchers; build their settings and refiner."""
     if max_misalignment <= 0 or inlier_radius <= 0:
@@ -59,7 +60,7 @@ def vote_setup(matcher: str, max_misalignment: float, inlier_radius: float, min_
     settings = VoteSettings(inlier_radius=inlier_radius, n_peaks=n_peaks, min_inliers=min_inliers,
                             check_points=check_points, min_fitness=min_fitness, ambiguity_ratio=ambiguity_ratio,
                             max_sd=max_sd, target_voxel=target_voxel, tie_positions=tie_positions,
-                            window_length=window_length)
+                            window_length=window_length, min_windows=min_windows)
     icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel, min_fitness=min_fitness,
                      max_sd=max_sd, tie_radius=inlier_radius, tie_positions=tie_positions,
                      alias_check=False) if refine else None
@@ -90,11 +91,11 @@ class PairVotingMatcher:
                  min_inliers: int = 5, n_peaks: int = 5, check_points: int = 20_000, min_fitness: float = 0.5,
                  ambiguity_ratio: float = 0.8, max_sd: float = 0.01, refine: bool = True,
                  target_voxel: float = 0.05, tie_positions: str = "offset",
-                 window_length: float = 5.0) -> None:
+                 window_length: float = 5.0, min_windows: int = 4) -> None:
         self.window, self.min_keypoints = max_misalignment, min_keypoints
         self.settings, self.icp = vote_setup("pair_voting", max_misalignment, inlier_radius, min_inliers, n_peaks,
                                              check_points, min_fitness, ambiguity_ratio, max_sd, refine,
-                                             target_voxel, tie_positions, window_length)
+                                             target_voxel, tie_positions, window_length, min_windows)
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:

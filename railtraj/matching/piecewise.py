@@ -1,4 +1,4 @@
-"""A tile pair's offset as a line along the track: window by window, then one straight fit.
+"""A tile pair's offset as a smooth curve along the track: window by window, then one fit.
 
 Two runs' tiles are not one translation apart. INS drift changes along the track: in the
 simulated tunnels by up to 18 mm per metre, so over a 25 m tile run b's cloud is stretched and
@@ -15,12 +15,14 @@ on. So the overlap is cut into windows of ``length`` metres along the track; eac
   is the minimum of that profile (truncated squared distance, the informative half of the
   points, parabola through the three lowest samples).
 
-A straight line ``d(s) = d_ref + g (s - s_ref)`` through the window estimates is the result.
-Its scatter gives an honest covariance (each edge is placed only to a profile spacing, so a
-window's along estimate scatters by about a centimetre; across and up by millimetres), and
-windows far off the line (a window on a sleeper alias) are dropped. On the simulated thesis
-tunnel the offset at the reference point came within 2.4 mm along, 6.9 mm across and 8.6 mm up
-of the truth where a rigid fit was refused as degenerate.
+A curve ``d(s) = c0 + c1 u + c2 u^2`` (``u = s - s_ref``; a parabola from 4 windows, a line
+from 2) through the window estimates is the result, ``c0`` the offset at the reference point
+(the median along-track position of run b's points in the overlap). Its scatter gives an
+honest covariance (each edge is placed only to a profile spacing, so a window's along estimate
+scatters by about a centimetre; across and up by millimetres), and windows far off the curve
+(a window on a sleeper alias) are dropped. On the simulated thesis tunnel the offset at the
+reference point came within 4.8 / 1.7 / 3.4 mm RMS (along / across / up) of the truth on pairs
+a rigid fit refused as degenerate.
 """
 
 from __future__ import annotations
@@ -40,21 +42,30 @@ WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])
 
 @dataclass(frozen=True)
 class Piecewise:
-    """``d(p) = d_ref + gradient * ((p - origin) @ axis - s_ref)``: offset moving b onto a."""
+    """``d(p) = sum_j coefs[j] u^j``, ``u = (p - origin) @ axis - s_ref``: offset moving b onto a."""
 
-    d_ref: np.ndarray  # (3,) offset at the reference point
-    gradient: np.ndarray  # (3,) change of the offset per metre along ``axis``
+    coefs: np.ndarray  # (3, 3) world-frame coefficients of u^0 (the offset at s_ref), u^1, u^2
     axis: np.ndarray  # (3,) unit horizontal track direction
     origin: np.ndarray  # (3,) where s = 0
     s_ref: float  # along-track position of the reference point (median of the moving points)
     cov: np.ndarray  # (3, 3) covariance of d_ref
     windows: np.ndarray  # (k, 5): s, dx, dy, dz, used (1/0) per window
-    resid_sd: np.ndarray  # (3,) scatter of the used windows about the line, along/across/up
+    resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
+
+    @property
+    def d_ref(self) -> np.ndarray:
+        """The offset at the reference point."""
+        return self.coefs[0]
+
+    @property
+    def gradient(self) -> np.ndarray:
+        """Change of the offset per metre along ``axis`` at the reference point."""
+        return self.coefs[1]
 
     def at(self, xyz: np.ndarray) -> np.ndarray:
         """The offset at each of the points ``xyz`` (n, 3)."""
-        s = (np.asarray(xyz, float) - self.origin) @ self.axis - self.s_ref
-        return self.d_ref + s[:, None] * self.gradient
+        u = (np.asarray(xyz, float) - self.origin) @ self.axis - self.s_ref
+        return np.vander(u, 3, increasing=True) @ self.coefs
 
     @property
     def n_used(self) -> int:
@@ -64,6 +75,7 @@ class Piecewise:
         """JSON-ready diagnostics for a tile pair's ``info``."""
         frame = track_frame(self.axis)
         return {"gradient_mm_per_m": (frame @ self.gradient * 1000).round(3).tolist(),
+                "curvature_mm_per_m2": (frame @ self.coefs[2] * 1000).round(4).tolist(),
                 "window_resid_sd_mm": (self.resid_sd * 1000).round(2).tolist(),
                 "windows": np.round(self.windows, 4).tolist(), "windows_used": self.n_used,
                 "axis": self.axis.tolist()}
@@ -122,10 +134,12 @@ def profile_minimum(ts: np.ndarray, cost: np.ndarray) -> float:
 def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_start: np.ndarray,
                    axis: np.ndarray, s: np.ndarray, length: float, *, points: int = 8_000,
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
-                   min_points: int = 1_500) -> np.ndarray:
-    """Offset of every ``length``-metre window of ``moving`` (at along-track positions ``s``):
-    rows ``s_mean, dx, dy, dz``; windows without enough points or a valley are left out."""
-    n_win = max(1, int(round(np.ptp(s) / length))) if len(s) else 0
+                   min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0) -> np.ndarray:
+    """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
+    ``s``): rows ``s_mean, dx, dy, dz``; windows without enough points or a valley are left out.
+    A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``."""
+    span = float(np.ptp(s)) if len(s) else 0.0
+    n_win = max(1, round(span / length), min(min_windows, int(span // min_length))) if len(s) else 0
     edges = np.linspace(s.min(), s.max(), n_win + 1) if n_win else np.zeros(1)
     ts = np.arange(-search, search + step / 2, step)
     rows = []
@@ -143,36 +157,65 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     return np.array(rows).reshape(-1, 4)
 
 
-def fit_line(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.02) -> tuple:
-    """Straight line through window offsets: (d_ref, gradient, cov of d_ref, used mask, resid sd).
+def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.03) -> tuple:
+    """Smooth curve through window offsets: (coefs (3, 3), cov of the offset at ``s_ref``, used
+    mask, resid sd along/across/up). Coefficients are world-frame, of ``(s - s_ref)^0, ^1, ^2``.
 
-    The worst window is dropped, one at a time, while its along-track residual exceeds both
-    ``reject`` and 3 robust sd (median absolute residual) of the windows kept. The sd per axis (along, across, up) is the residual scatter, never below
-    :data:`WINDOW_SD_FLOOR`; one window gives the offset with no gradient.
+    The degree follows the windows kept: a parabola from 4 (drift bends within a tile: on the
+    thesis tunnel a straight line left 14.9 / 4.7 / 4.4 mm RMS at the reference point, a
+    parabola 4.8 / 1.7 / 3.4 mm), a line from 2, a constant from 1. A window whose along-track
+    offset is more than ``reject`` (3 window sd) off the curve through the others is dropped,
+    the worst first, while 3 or more remain. The sd per axis is the residual scatter, never
+    below :data:`WINDOW_SD_FLOOR`.
     """
     frame = track_frame(axis)
     s, d = windows[:, 0] - s_ref, windows[:, 1:4] @ frame.T  # track frame
     used = np.ones(len(s), bool)
-    while used.sum() > 2:  # drop the worst window while it is far off the others' line
-        coef, G = _line(s[used], d[used])
-        resid = np.abs(d[:, 0] - coef[0, 0] - s * coef[1, 0])
-        worst = int(np.argmax(np.where(used, resid, -1.0)))
-        if resid[worst] <= max(reject, 3 * 1.4826 * np.median(resid[used])):
+    while used.sum() > 3:
+        idx = np.flatnonzero(used)
+        loo = np.array([abs(d[i, 0] - _predict(s[idx[idx != i]], d[idx[idx != i], 0], s[i])) for i in idx])
+        if loo.max() <= reject:
             break
-        used[worst] = False
-    coef, G = _line(s[used], d[used])
-    sd = np.maximum(_scatter(d[used] - coef[0] - s[used, None] * coef[1], G), WINDOW_SD_FLOOR)
+        used[idx[int(np.argmax(loo))]] = False
+    coef, G = _poly(s[used], d[used])
+    resid = d[used] - np.vander(s[used], 3, increasing=True) @ coef
+    sd = np.maximum(_scatter(resid, G), WINDOW_SD_FLOOR)
     var_scale = float(np.linalg.inv(G.T @ G)[0, 0])  # s is relative to s_ref: the intercept
     cov_track = np.diag(sd**2 * var_scale)
-    return coef[0] @ frame, coef[1] @ frame, frame.T @ cov_track @ frame, used, sd
+    return coef @ frame, frame.T @ cov_track @ frame, used, sd
 
 
-def _line(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares intercept and slope (2, 3) of ``d`` over ``s``, and the design matrix; with
-    one window the slope is zero."""
-    G = np.column_stack([np.ones(len(s)), s]) if len(s) > 1 else np.ones((len(s), 1))
-    coef = np.linalg.lstsq(G, d, rcond=None)[0]
-    return (coef if len(coef) == 2 else np.vstack([coef, np.zeros((1, 3))])), G
+def _predict(s: np.ndarray, y: np.ndarray, at: float) -> float:
+    """The curve through (s, y) (degree as in :func:`_poly`) evaluated at ``at``."""
+    coef, _ = _poly(s, y[:, None])
+    return float((np.vander(np.array([at]), 3, increasing=True) @ coef[:, 0])[0])
+
+
+def reference_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray,
+                    b_time: np.ndarray, half: float = 1.0) -> tuple[float, float]:
+    """When each run measured the reference point of ``fit``: median gps_time of its points
+    within ``half`` metres along the track of it (run a's points taken back by ``d_ref``).
+
+    The optimizer observes a tile pair's offset at these times, so they must belong to the
+    same place as ``d_ref``: with drift changing by centimetres per metre, the overlap's
+    median time can sit metres away from it on a partial overlap.
+    """
+    out = []
+    for xyz, times, shift in ((a_xyz, a_time, fit.d_ref), (b_xyz, b_time, np.zeros(3))):
+        s = (xyz - shift - fit.origin) @ fit.axis - fit.s_ref
+        near = np.abs(s) <= half
+        out.append(float(np.median(times[near])) if near.any() else float("nan"))
+    return out[0], out[1]
+
+
+def _poly(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares coefficients (3, k) of ``d`` (n, k) over ``s^0, s^1, s^2`` (the degree the number
+    of windows allows, higher ones zero) and the design matrix."""
+    degree = 2 if len(s) >= 4 else min(len(s) - 1, 1)
+    G = np.vander(s, degree + 1, increasing=True)
+    coef = np.zeros((3, d.shape[1]))
+    coef[: degree + 1] = np.linalg.lstsq(G, d, rcond=None)[0]
+    return coef, G
 
 
 def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -184,7 +227,7 @@ def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
                   length: float = 5.0, information: np.ndarray | None = None, tree: cKDTree | None = None,
                   **window_options) -> Piecewise | None:
-    """Fit the line of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
+    """Fit the curve of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
 
     ``target`` is the plane target of ``ref_xyz``; ``information`` a point-to-plane information
     matrix near ``d_start`` (for the track direction; fitted here if None); ``tree`` a KD-tree
@@ -202,19 +245,19 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     if len(windows) == 0:
         return None
     s_ref = float(np.median(s))
-    d_ref, grad, cov, used, sd = fit_line(windows, axis, s_ref)
+    coefs, cov, used, sd = fit_curve(windows, axis, s_ref)
     table = np.column_stack([windows, used.astype(float)])
-    return Piecewise(d_ref, grad, axis, origin, s_ref, cov, table, sd)
+    return Piecewise(coefs, axis, origin, s_ref, cov, table, sd)
 
 
 def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center: np.ndarray, window: float,
                 radius: float = 0.05, exclude: float = 0.2, points: int = 4_000) -> tuple[float, float, dict]:
-    """How close the best alias along the track comes to the fitted line of offsets.
+    """How close the best alias along the track comes to the fitted curve of offsets.
 
     Like :func:`railtraj.matching.consensus.alias_rivals`, but every point is first moved by its
-    own offset on the line, so a stretched run b no longer blurs the true alignment: the misfit
+    own offset on the curve, so a stretched run b no longer blurs the true alignment: the misfit
     (share of points farther than ``radius`` from run a) of the best distinct local maximum of
-    the along-track fitness profile, against that of the line itself, each the best within 3 cm.
+    the along-track fitness profile, against that of the curve itself, each the best within 3 cm.
     Returns the ratio (1: indistinguishable, above 1: the alias fits better), the along-track
     shift to that alias, and the coarse profile for the report.
     """

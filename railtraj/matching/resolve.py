@@ -22,8 +22,8 @@ from railtraj.matching.consensus import (
     failed,
     make_ties,
 )
-from railtraj.matching.piecewise import alias_ratio, piecewise_fit
-from railtraj.matching.refine import crop, directions, sample
+from railtraj.matching.piecewise import alias_ratio, piecewise_fit, reference_times
+from railtraj.matching.refine import directions, sample
 from railtraj.matching.target import cached_target
 from railtraj.matching.voting import Votes, find_peaks, slices
 
@@ -43,7 +43,8 @@ class VoteSettings:
     max_sd: float = 0.03  # m; see builtins.icp
     target_voxel: float = 0.05
     tie_positions: str = "offset"
-    window_length: float = 5.0  # m; > 0: refine as a line of offsets along the track (piecewise)
+    window_length: float = 5.0  # m; > 0: refine as a curve of offsets along the track (piecewise)
+    min_windows: int = 4  # windows the curve needs for ok (fewer: no curvature, degenerate)
 
 
 def peak_table(checked) -> list[list[float]]:
@@ -97,30 +98,38 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
 
 
 def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info) -> TileOffset:
-    """Refine as a line of offsets along the track (:mod:`railtraj.matching.piecewise`), then
-    judge it: ``ambiguous`` if an along-track alias of the line fits nearly as well,
-    ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction, else ``ok`` with ties
-    whose offsets follow the line."""
+    """Refine as a curve of offsets along the track (:mod:`railtraj.matching.piecewise`), then
+    judge it: ``ambiguous`` if an along-track alias of the curve fits nearly as well,
+    ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction or fewer than
+    ``min_windows`` windows carry it (a short overlap: with 2-3 windows the curvature of the
+    drift is not seen, and errors reached 13 mm on the thesis tunnel), else ``ok`` with ties
+    whose offsets follow the curve."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
-    moving = crop(target, tile_b.xyz, chosen.fit.d, 0.3)
-    fit = piecewise_fit(target, tile_a.xyz, moving, chosen.fit.d, s.window_length, chosen.fit.information)
+
+    def fit_from(start: np.ndarray):
+        inside = target.inside(tile_b.xyz + start, 0.3)
+        fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
+                            chosen.fit.information, min_windows=s.min_windows)
+        if fit is None:
+            return None, inside, 0.0, 0.0
+        rival, shift, info["alias_profile"] = alias_ratio(target, tile_b.xyz[inside], fit, votes.center,
+                                                          votes.window, s.fitness_radius, 2 * s.inlier_radius,
+                                                          2 * s.profile_points)
+        return fit, inside, rival, shift
+
+    fit, inside, rival, shift = fit_from(chosen.fit.d)
     if fit is None:
         return failed(tile_a, tile_b, "degenerate", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
-    rival, shift, info["alias_profile"] = alias_ratio(target, moving, fit, votes.center, votes.window,
-                                                      s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
     if rival * s.ambiguity_ratio >= 1.0:  # an alias fits clearly better: the votes chose wrong
-        start = fit.d_ref + shift * fit.axis
-        moving = crop(target, tile_b.xyz, start, 0.3)
-        moved = piecewise_fit(target, tile_a.xyz, moving, start, s.window_length, chosen.fit.information)
-        if moved is not None:
-            info["moved_to_alias"] = (moved.d_ref - fit.d_ref).tolist()
-            fit = moved
-            rival, _, info["alias_profile"] = alias_ratio(target, moving, fit, votes.center, votes.window,
-                                                          s.fitness_radius, 2 * s.inlier_radius,
-                                                          2 * s.profile_points)
+        moved = fit_from(fit.d_ref + shift * fit.axis)
+        if moved[0] is not None:
+            info["moved_to_alias"] = (moved[0].d_ref - fit.d_ref).tolist()
+            fit, inside, rival, _ = moved
     info["timings"]["windows"] = time.perf_counter() - t0
+    info["time_a"], info["time_b"] = reference_times(fit, tile_a.xyz, tile_a.gps_time, tile_b.xyz[inside],
+                                                     tile_b.gps_time[inside])
     sd = np.sqrt(np.maximum(np.linalg.eigvalsh(fit.cov), 0.0))
     info.update(rival_misfit_ratio=rival, piecewise=fit.summary(), weak_sd=float(sd[-1]), fitness=chosen.fit.fitness,
                 information=directions(np.linalg.inv(fit.cov)))
@@ -128,7 +137,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     if rival >= s.ambiguity_ratio:
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
-    if not sd[-1] <= s.max_sd:
+    if not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows):
         return failed(tile_a, tile_b, "degenerate", info, fit.d_ref, fit.cov, inliers=len(ia))
     ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, fit.at(kp_b.xyz[ib]), s.tie_positions)
     return TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=fit.d_ref, cov=fit.cov,

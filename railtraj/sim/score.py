@@ -122,3 +122,38 @@ def c2c(points_a: np.ndarray, points_b: np.ndarray, max_dist: float = 1.0, n_sam
             "median": float(np.median(d)), "p95": float(np.percentile(d, 95)),
             "mean": float(d.mean()), "nn_median": float(np.median(nn)),
             "nn_p95": float(np.percentile(nn, 95))}
+
+
+def tie_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], ties) -> np.ndarray:
+    """Error (n, 3) east/north/up of each tie's offset ``xyz_a - xyz_b`` against the true one.
+
+    The object run b measured at ``xyz_b`` (time ``time_b``) truly lies at ``X`` (b's delivered
+    trajectory swapped for its true one); run a, measuring it at ``time_a``, put it at ``X``
+    moved by a's drift then. The true offset is that point minus ``xyz_b``; the error is
+    ``xyz_a`` minus that point. Exact for the simulator, whose errors are trajectory errors.
+    """
+    from railtraj.georef import regeoreference_points
+
+    x_true = regeoreference_points(ties.xyz_b, ties.time_b, delivered[ties.run_b], truth[ties.run_b])
+    a_true = regeoreference_points(x_true, ties.time_a, truth[ties.run_a], delivered[ties.run_a])
+    return ties.xyz_a - a_true
+
+
+def score_offsets(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], offsets) -> dict:
+    """How far the ``ok`` tile-pair offsets are from the truth, where their ties are.
+
+    Per ok pair the error is the weighted mean of its ties' errors (the pair's estimate at its
+    features); reported as RMS and max per axis (east, north, up), and the share of pairs within
+    1 cm on every axis.
+    """
+    per_pair = []
+    for o in offsets:
+        if o.status == "ok" and o.ties is not None and len(o.ties):
+            err = tie_errors(truth, delivered, o.ties)
+            per_pair.append(np.average(err, axis=0, weights=o.ties.weight))
+    if not per_pair:
+        return {"ok_pairs": 0}
+    e = np.array(per_pair)
+    return {"ok_pairs": len(e), "rms_m": np.sqrt((e**2).mean(axis=0)).tolist(),
+            "max_abs_m": np.abs(e).max(axis=0).tolist(),
+            "within_1cm": float((np.abs(e) <= 0.01).all(axis=1).mean())}

@@ -10,32 +10,32 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from railtraj.matching.piecewise import fit_line, piecewise_fit, track_frame
+from railtraj.matching.piecewise import fit_curve, piecewise_fit, track_frame
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
 from railtraj.matching.target import build_target
 
 AXIS = np.array([1.0, 0.0, 0.0])
 
 
-def test_fit_line_recovers_a_line_and_drops_a_window_on_an_alias():
+def test_fit_curve_recovers_a_parabola_and_drops_a_window_on_an_alias():
     s = np.arange(-12.5, 12.6, 5.0)
-    d_ref, grad = np.array([0.3, -0.2, 0.05]), np.array([0.008, -0.004, 0.001])
-    d = d_ref + s[:, None] * grad
+    coefs = np.array([[0.3, -0.2, 0.05], [0.008, -0.004, 0.001], [1e-4, -2e-4, 0.0]])
+    d = np.vander(s, 3, increasing=True) @ coefs
     d[2, 0] += 0.65  # one window locked onto the next sleeper
-    windows = np.column_stack([s, d])
-    got_ref, got_grad, cov, used, sd = fit_line(windows, AXIS, 0.0)
+    got, cov, used, sd = fit_curve(np.column_stack([s, d]), AXIS, 0.0)
     assert used.tolist() == [True, True, False, True, True, True]
-    np.testing.assert_allclose(got_ref, d_ref, atol=1e-9)
-    np.testing.assert_allclose(got_grad, grad, atol=1e-9)
-    # a perfect line still reports the floor sd (1 cm along per window over 5 windows)
-    assert np.sqrt(cov[0, 0]) == pytest.approx(0.010 / np.sqrt(5), rel=0.01)
+    np.testing.assert_allclose(got, coefs, atol=1e-9)
+    # a perfect curve still reports the floor sd (1 cm along per window), never zero
+    assert 0.004 < np.sqrt(cov[0, 0]) < 0.010 and sd[0] == pytest.approx(0.010)
 
 
-def test_fit_line_with_one_window_gives_that_offset_and_no_gradient():
-    d_ref, grad, cov, used, _ = fit_line(np.array([[2.0, 0.1, 0.2, 0.3]]), AXIS, 2.0)
-    np.testing.assert_allclose(d_ref, [0.1, 0.2, 0.3])
-    np.testing.assert_allclose(grad, 0.0)
+def test_fit_curve_degree_follows_the_windows():
+    got, cov, used, _ = fit_curve(np.array([[2.0, 0.1, 0.2, 0.3]]), AXIS, 2.0)
+    np.testing.assert_allclose(got, [[0.1, 0.2, 0.3], [0, 0, 0], [0, 0, 0]])
     assert used.all() and np.isfinite(cov).all()
+    two = np.array([[-2.5, 0.1, 0.0, 0.0], [2.5, 0.2, 0.0, 0.0]])
+    got, *_ = fit_curve(two, AXIS, 0.0)
+    np.testing.assert_allclose(got[:, 0], [0.15, 0.02, 0.0])
 
 
 @pytest.fixture(scope="module")
