@@ -2,11 +2,14 @@
 
 ``serial`` runs items one after another in this process (simplest to debug; the stages' own
 libraries, Open3D and kiss-icp, already use every core). ``process`` runs items in a pool of
-worker processes, for stages that are single-threaded Python/numpy.
+worker processes, for stages that are single-threaded Python/numpy. Workers start from a fork
+server, not by forking this process: a fork taken while Open3D's or a KD-tree's threads hold a
+lock deadlocks the child (seen when a script generated a survey and then ran the pipeline).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -51,7 +54,8 @@ class ProcessExecutor:
         if self.workers == 1 or len(items) <= 1:
             return SerialExecutor().map(fn, items, progress)
         out: list = [None] * len(items)
-        with ProcessPoolExecutor(max_workers=self.workers) as pool:
+        context = multiprocessing.get_context("forkserver")
+        with ProcessPoolExecutor(max_workers=self.workers, mp_context=context) as pool:
             futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
             for done, fut in enumerate(as_completed(futures), start=1):
                 out[futures[fut]] = fut.result()

@@ -200,12 +200,36 @@ def reference_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz
     same place as ``d_ref``: with drift changing by centimetres per metre, the overlap's
     median time can sit metres away from it on a partial overlap.
     """
-    out = []
-    for xyz, times, shift in ((a_xyz, a_time, fit.d_ref), (b_xyz, b_time, np.zeros(3))):
-        s = (xyz - shift - fit.origin) @ fit.axis - fit.s_ref
-        near = np.abs(s) <= half
-        out.append(float(np.median(times[near])) if near.any() else float("nan"))
-    return out[0], out[1]
+    s = np.array([fit.s_ref])
+    return (float(_times_near(fit, a_xyz - fit.d_ref, a_time, s, half)[0]),
+            float(_times_near(fit, b_xyz, b_time, s, half)[0]))
+
+
+def window_ties(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray,
+                b_time: np.ndarray, half: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One tie per used window, for pairs whose keypoints agree too little to give ties:
+    ``(time_a, time_b, xyz_a, xyz_b)`` at run b's point nearest each window's median, with the
+    curve's offset there and both runs' median times within ``half`` metres along the track."""
+    s_w = fit.windows[fit.windows[:, 4] > 0, 0]
+    s_b = (b_xyz - fit.origin) @ fit.axis
+    xyz_b = np.array([b_xyz[int(np.argmin(np.abs(s_b - s)))] for s in s_w]).reshape(-1, 3)  # a few windows
+    time_a = _times_near(fit, a_xyz - fit.at(a_xyz), a_time, s_w, half)
+    time_b = _times_near(fit, b_xyz, b_time, s_w, half)
+    ok = np.isfinite(time_a) & np.isfinite(time_b)
+    return time_a[ok], time_b[ok], xyz_b[ok] + fit.at(xyz_b[ok]), xyz_b[ok]
+
+
+def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np.ndarray,
+                half: float) -> np.ndarray:
+    """Median time of the points within ``half`` metres along the track of each of ``s_values``
+    (NaN where there is none)."""
+    s = (xyz - fit.origin) @ fit.axis
+    out = np.full(len(s_values), np.nan)
+    for k, sv in enumerate(s_values):  # a handful of positions
+        near = np.abs(s - sv) <= half
+        if near.any():
+            out[k] = np.median(times[near])
+    return out
 
 
 def _poly(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

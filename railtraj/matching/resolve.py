@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from railtraj.data import Keypoints, PointTile, TileOffset
+from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.consensus import (
     alias_covariance,
     alias_rivals,
@@ -22,10 +22,13 @@ from railtraj.matching.consensus import (
     failed,
     make_ties,
 )
-from railtraj.matching.piecewise import alias_ratio, piecewise_fit, reference_times
+from railtraj.matching.piecewise import alias_ratio, piecewise_fit, reference_times, window_ties
 from railtraj.matching.refine import directions, sample
 from railtraj.matching.target import cached_target
 from railtraj.matching.voting import Votes, find_peaks, slices
+
+#: keypoint pairs agreeing with the curve needed to use them as ties (else one tie per window)
+MIN_KEYPOINT_TIES = 3
 
 Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], TileOffset]
 
@@ -139,7 +142,12 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
     if not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows):
         return failed(tile_a, tile_b, "degenerate", info, fit.d_ref, fit.cov, inliers=len(ia))
-    ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, fit.at(kp_b.xyz[ib]), s.tie_positions)
+    if len(ia) >= MIN_KEYPOINT_TIES:
+        ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, fit.at(kp_b.xyz[ib]), s.tie_positions)
+    else:  # too few keypoints agree with the curve: tie the windows themselves
+        t_a, t_b, xyz_a, xyz_b = window_ties(fit, tile_a.xyz, tile_a.gps_time, tile_b.xyz[inside],
+                                             tile_b.gps_time[inside])
+        ties = Ties(tile_a.run_id, tile_b.run_id, t_a, t_b, xyz_a, xyz_b, np.full(len(t_a), 1.0 / max(len(t_a), 1)))
     return TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=fit.d_ref, cov=fit.cov,
                       inliers=len(ia), status="ok", ties=ties, info=info)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from railtraj.matching.piecewise import fit_curve, piecewise_fit, track_frame
+from railtraj.matching.piecewise import fit_curve, piecewise_fit, track_frame, window_ties
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
 from railtraj.matching.target import build_target
 
@@ -66,3 +66,16 @@ def test_piecewise_fit_follows_a_stretched_run_to_millimetres(stretched):
     np.testing.assert_allclose(abs(fit.axis @ rotation_z(30) @ [1.0, 0, 0]), 1.0, atol=1e-4)
     # a rigid translation cannot: the true offset varies by 19 cm along this overlap
     assert np.ptp(true_d[inside] @ fit.axis) > 0.15
+
+
+def test_window_ties_carry_the_true_offset_where_and_when_they_are(stretched):
+    a, b, true_d = stretched
+    target = build_target(a.xyz)
+    inside = target.inside(b.xyz + true_d.mean(axis=0), 0.3)
+    fit = piecewise_fit(target, a.xyz, b.xyz[inside], true_d.mean(axis=0), length=5.0)
+    time_a, time_b, xyz_a, xyz_b = window_ties(fit, a.xyz, a.gps_time, b.xyz[inside], b.gps_time[inside])
+    assert len(time_a) == fit.n_used >= 4
+    k = np.array([np.flatnonzero(inside)[np.argmin(((b.xyz[inside] - p) ** 2).sum(axis=1))] for p in xyz_b])
+    np.testing.assert_allclose(xyz_a - xyz_b, true_d[k], atol=0.005)
+    # both runs pass each tie's place at the same time in this synthetic pair (5 m/s, 0.2 s per m)
+    np.testing.assert_allclose(time_a, time_b, atol=0.1)
