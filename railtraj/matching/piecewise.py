@@ -50,6 +50,7 @@ class Piecewise:
     s_ref: float  # along-track position of the reference point (median of the moving points)
     cov: np.ndarray  # (3, 3) covariance of d_ref
     windows: np.ndarray  # (k, 5): s, dx, dy, dz, used (1/0) per window
+    span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
 
     @property
@@ -63,9 +64,15 @@ class Piecewise:
         return self.coefs[1]
 
     def at(self, xyz: np.ndarray) -> np.ndarray:
-        """The offset at each of the points ``xyz`` (n, 3)."""
-        u = (np.asarray(xyz, float) - self.origin) @ self.axis - self.s_ref
-        return np.vander(u, 3, increasing=True) @ self.coefs
+        """The offset at each of the points ``xyz`` (n, 3); beyond :attr:`span` the offset at
+        its nearer end (a parabola must not be extrapolated)."""
+        s = np.clip((np.asarray(xyz, float) - self.origin) @ self.axis, *self.span)
+        return np.vander(s - self.s_ref, 3, increasing=True) @ self.coefs
+
+    def covers(self, xyz: np.ndarray) -> np.ndarray:
+        """Mask of the points ``xyz`` within :attr:`span` along the track."""
+        s = (np.asarray(xyz, float) - self.origin) @ self.axis
+        return (s >= self.span[0]) & (s <= self.span[1])
 
     @property
     def n_used(self) -> int:
@@ -165,8 +172,9 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
     thesis tunnel a straight line left 14.9 / 4.7 / 4.4 mm RMS at the reference point, a
     parabola 4.8 / 1.7 / 3.4 mm), a line from 2, a constant from 1. A window whose along-track
     offset is more than ``reject`` (3 window sd) off the curve through the others is dropped,
-    the worst first, while 3 or more remain. The sd per axis is the residual scatter, never
-    below :data:`WINDOW_SD_FLOOR`.
+    the worst first, while 3 or more remain (a tile pair left with 3 is not ``ok``: windows
+    that disagree that much say the pair is unreliable). The sd per axis is the residual
+    scatter, never below :data:`WINDOW_SD_FLOOR`.
     """
     frame = track_frame(axis)
     s, d = windows[:, 0] - s_ref, windows[:, 1:4] @ frame.T  # track frame
@@ -271,7 +279,10 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     s_ref = float(np.median(s))
     coefs, cov, used, sd = fit_curve(windows, axis, s_ref)
     table = np.column_stack([windows, used.astype(float)])
-    return Piecewise(coefs, axis, origin, s_ref, cov, table, sd)
+    centres = windows[used, 0]
+    half = 0.5 * np.ptp(s) / len(windows)  # half a window
+    span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
+    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd)
 
 
 def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center: np.ndarray, window: float,

@@ -137,6 +137,8 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     info.update(rival_misfit_ratio=rival, piecewise=fit.summary(), weak_sd=float(sd[-1]), fitness=chosen.fit.fitness,
                 information=directions(np.linalg.inv(fit.cov)))
     ia, ib = consensus(votes, fit.at(kp_b.xyz[votes.ib]), s.inlier_radius)
+    keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve was fitted
+    ia, ib = ia[keep], ib[keep]
     if rival >= s.ambiguity_ratio:
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
