@@ -103,7 +103,7 @@ def run_pipeline(a, b, truth, F, detector: str, options: dict, descriptor: str =
           f"{err[0]:+6.2f} {err[1]:+6.2f} {err[2]:+6.2f}")
     print(f"    detect {t1 - t0:5.2f} + {t2 - t1:5.2f} s, describe {t3 - t2:5.2f} s, match {t4 - t3:5.2f} s "
           f"(vote {tm.get('vote', 0):.2f}, peaks {tm.get('peaks', 0):.2f}, dense check "
-          f"{tm.get('dense_check', 0):.2f}, refine {tm.get('icp_total', 0):.2f}), END TO END {t4 - t0:5.2f} s; "
+          f"{tm.get('dense_check', 0):.2f}, refine {tm.get('icp_total', tm.get('windows', 0)):.2f}), END TO END {t4 - t0:5.2f} s; "
           f"peak ratio {off.info.get('peak_ratio', float('nan')):.2f}, rival misfit "
           f"{off.info.get('rival_misfit_ratio', float('nan')):.2f}, ties {len(off.ties)}, "
           f"sd mm {np.round(np.sqrt(np.diag(F @ off.cov @ F.T)) * 1000, 2)}")
