@@ -21,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from railtraj.matching.piecewise import track_frame
 from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
 from railtraj.plugins import registry
 from railtraj.sim import generate, load_truth
-from railtraj.sim.score import score_offsets, tie_errors
+from railtraj.sim.score import offset_errors, score_offsets
 
 
 def survey_for(scenario: str, seed: int) -> Path:
@@ -43,18 +44,15 @@ def run(survey_dir: Path, matcher_options: dict) -> None:
     result = run_pipeline(survey_dir, stages, PipelineOptions(), progress=lambda *a: None)
     seconds = time.perf_counter() - t0
     truth = load_truth(survey_dir.parent / "truth")
+    errors = offset_errors(truth.trajectories, result.trajectories, result.offsets)
     statuses: dict[str, int] = {}
     print(f"\n== pair_voting {matcher_options or '(defaults)'}")
-    for pr in result.pairs:
-        o = pr.offset
+    for k, o in enumerate(result.offsets):
         statuses[o.status] = statuses.get(o.status, 0) + 1
         line = f"  {o.run_b}:{o.tile_a:<20s} {o.status:13s}"
-        if o.status == "ok" and o.ties is not None and len(o.ties):
-            err = np.average(tie_errors(truth.trajectories, result.trajectories, o.ties), axis=0,
-                             weights=o.ties.weight)
+        if k in errors:
             axis = np.array(o.info.get("piecewise", {}).get("axis", [1.0, 0.0, 0.0]))
-            frame = np.vstack([axis, np.cross([0.0, 0.0, 1.0], axis), [0.0, 0.0, 1.0]])
-            along, across, up = frame @ err * 1000
+            along, across, up = track_frame(axis) @ errors[k] * 1000
             line += f"error along/across/up {along:6.1f} {across:6.1f} {up:6.1f} mm"
         print(line)
     score = score_offsets(truth.trajectories, result.trajectories, result.offsets)

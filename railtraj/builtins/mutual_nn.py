@@ -18,32 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.builtins.pair_voting import finish, start, vote_setup
+from railtraj.builtins.pair_voting import VotingMatcher, VotingOptions
 from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
-from railtraj.matching.consensus import boxes_overlap, failed
 from railtraj.matching.voting import Votes, counts
 
 
 @dataclass
-class MutualNnConfig:
+class MutualNnConfig(VotingOptions):
     name: str = "mutual_nn"
-    max_misalignment: float = 3.0  # m; matched pairs proposing a larger translation are dropped
-    inlier_radius: float = 0.1  # m; a pair is an inlier of a translation this close to it
     top_n: int = 10  # best-ranked pairs reported (thesis: top 10)
-    min_keypoints: int = 10  # per tile; fewer: few_keypoints
     min_inliers: int = 3  # agreeing pairs the best translation needs; fewer: no_consensus
-    n_peaks: int = 5
-    check_points: int = 20_000
-    min_fitness: float = 0.5
-    ambiguity_ratio: float = 0.8
-    max_sd: float = 0.01  # m
-    refine: bool = True
-    target_voxel: float = 0.05
-    tie_positions: str = "offset"  # offset | keypoints
-    window_length: float = 5.0  # m; refine per window along the track, fit a curve (0: one rigid ICP)
-    min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
 
 
 def mutual_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,29 +42,23 @@ def mutual_pairs(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np
     return ia, ab[ia]
 
 
-class MutualNnMatcher:
+class MutualNnMatcher(VotingMatcher):
     """Descriptor mutual-NN matching, translation ranking, dense check (see module docstring)."""
 
-    def __init__(self, max_misalignment: float = 3.0, inlier_radius: float = 0.1, top_n: int = 10,
-                 min_keypoints: int = 10, min_inliers: int = 3, n_peaks: int = 5, check_points: int = 20_000,
-                 min_fitness: float = 0.5, ambiguity_ratio: float = 0.8, max_sd: float = 0.01,
-                 refine: bool = True, target_voxel: float = 0.05, tie_positions: str = "offset",
-                 window_length: float = 5.0, min_windows: int = 4) -> None:
-        self.window, self.top_n, self.min_keypoints = max_misalignment, top_n, min_keypoints
-        self.settings, self.icp = vote_setup("mutual_nn", max_misalignment, inlier_radius, min_inliers, n_peaks,
-                                             check_points, min_fitness, ambiguity_ratio, max_sd, refine,
-                                             target_voxel, tie_positions, window_length, min_windows)
+    kind = "mutual_nn"
+
+    def __init__(self, top_n: int = 10, min_inliers: int = 3, **options) -> None:
+        super().__init__(min_inliers=min_inliers, **options)
+        self.top_n = top_n
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:
         if kp_a.descriptors is None or kp_b.descriptors is None:
             raise ConfigError("matcher=mutual_nn needs descriptors: use descriptor=fpfh")
         t0 = time.perf_counter()
-        center, info = start(initial, kp_a, kp_b, self.window)
-        if min(len(kp_a), len(kp_b)) < self.min_keypoints:
-            return failed(tile_a, tile_b, "few_keypoints", info)
-        if not boxes_overlap(tile_a, tile_b, center, self.window):
-            return failed(tile_a, tile_b, "no_overlap", info)
+        center, info, refusal = self.open(tile_a, kp_a, tile_b, kp_b, initial)
+        if refusal is not None:
+            return refusal
         ia, ib = mutual_pairs(kp_a.descriptors, kp_b.descriptors)
         d = kp_a.xyz[ia] - kp_b.xyz[ib]
         inside = ((d - center) ** 2).sum(axis=1) <= self.window**2
@@ -87,7 +67,7 @@ class MutualNnMatcher:
         top = np.argsort(-ranked, kind="stable")[: self.top_n]
         info.update(mutual_pairs=len(ia), ranking=np.c_[votes.d[top], ranked[top]].tolist())
         info["timings"]["match_descriptors"] = time.perf_counter() - t0
-        return finish(tile_a, kp_a, tile_b, kp_b, votes, self.settings, self.icp, info, t0)
+        return self.finish(tile_a, kp_a, tile_b, kp_b, votes, info, t0)
 
 
 @hookimpl

@@ -28,8 +28,9 @@ from railtraj.matching.voting import pair_translations
 
 
 @dataclass
-class PairVotingConfig:
-    name: str = "pair_voting"
+class VotingOptions:
+    """Options both voting matchers (``pair_voting``, ``mutual_nn``) take."""
+
     max_misalignment: float = 3.0  # m; search window around the initial offset (or zero)
     inlier_radius: float = 0.1  # m; a keypoint pair agrees with a translation this closely
     min_keypoints: int = 10  # per tile; fewer: few_keypoints
@@ -39,75 +40,87 @@ class PairVotingConfig:
     min_fitness: float = 0.5  # share of points within 5 cm at the best peak; below: no_overlap
     ambiguity_ratio: float = 0.8  # misfit of the best / of a distinct rival peak; above: ambiguous
     max_sd: float = 0.01  # m; sd of the offset in any direction above this: degenerate
-    refine: bool = True  # point-to-plane refinement with the icp matcher
+    refine: bool = True  # point-to-plane refinement (windows along the track, or one rigid fit)
     target_voxel: float = 0.05  # m; reference grid for the check and the refinement
     tie_positions: str = "offset"  # offset | keypoints
     window_length: float = 5.0  # m; refine per window along the track, fit a curve (0: one rigid ICP)
     min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
 
 
-def vote_setup(matcher: str, max_misalignment: float, inlier_radius: float, min_inliers: int, n_peaks: int,
-               check_points: int, min_fitness: float, ambiguity_ratio: float, max_sd: float, refine: bool,
-               target_voxel: float, tie_positions: str, window_length: float = 5.0, min_windows: int = 4
-               ) -> tuple[VoteSettings, IcpMatcher | None]:
+@dataclass
+class PairVotingConfig(VotingOptions):
+    name: str = "pair_voting"
+
+
+def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher | None]:
     """Check the options shared by the voting matchers; build their settings and refiner."""
-    if max_misalignment <= 0 or inlier_radius <= 0:
+    if o.max_misalignment <= 0 or o.inlier_radius <= 0:
         raise ConfigError(f"matcher={matcher} needs max_misalignment > 0 and inlier_radius > 0")
-    if window_length < 0:
-        raise ConfigError(f"matcher={matcher} window_length={window_length}: give metres > 0, or 0 for one rigid fit")
-    if tie_positions not in ("offset", "keypoints"):
-        raise ConfigError(f"tie_positions={tie_positions!r}: choose offset or keypoints")
-    settings = VoteSettings(inlier_radius=inlier_radius, n_peaks=n_peaks, min_inliers=min_inliers,
-                            check_points=check_points, min_fitness=min_fitness, ambiguity_ratio=ambiguity_ratio,
-                            max_sd=max_sd, target_voxel=target_voxel, tie_positions=tie_positions,
-                            window_length=window_length, min_windows=min_windows)
-    icp = IcpMatcher(max_misalignment=max_misalignment, target_voxel=target_voxel, min_fitness=min_fitness,
-                     max_sd=max_sd, tie_radius=inlier_radius, tie_positions=tie_positions,
-                     alias_check=False) if refine else None
+    if o.window_length < 0:
+        raise ConfigError(f"matcher={matcher} window_length={o.window_length}: give metres > 0, or 0 for one rigid fit")
+    if o.tie_positions not in ("offset", "keypoints"):
+        raise ConfigError(f"tie_positions={o.tie_positions!r}: choose offset or keypoints")
+    settings = VoteSettings(inlier_radius=o.inlier_radius, n_peaks=o.n_peaks, min_inliers=o.min_inliers,
+                            check_points=o.check_points, min_fitness=o.min_fitness,
+                            ambiguity_ratio=o.ambiguity_ratio, max_sd=o.max_sd, target_voxel=o.target_voxel,
+                            tie_positions=o.tie_positions, window_length=o.window_length,
+                            min_windows=o.min_windows)
+    icp = IcpMatcher(max_misalignment=o.max_misalignment, target_voxel=o.target_voxel, min_fitness=o.min_fitness,
+                     max_sd=o.max_sd, tie_radius=o.inlier_radius, tie_positions=o.tie_positions,
+                     alias_check=False) if o.refine else None
     return settings, icp
 
 
-def start(initial: TileOffset | None, kp_a: Keypoints, kp_b: Keypoints, window: float) -> tuple[np.ndarray, dict]:
-    """Search centre (the initial estimate, or zero) and the diagnostics dict every match starts with."""
-    center = np.zeros(3)
-    if initial is not None and np.isfinite(initial.d).all():
-        center = np.asarray(initial.d, float)
-    return center, {"timings": {}, "keypoints": [len(kp_a), len(kp_b)], "window": window,
-                    "center": center.tolist()}
+class VotingMatcher:
+    """What the voting matchers share: their options, the opening checks and the ending
+    (:func:`railtraj.matching.resolve.resolve`). Subclasses only say which pairs vote."""
+
+    kind = "voting"
+
+    def __init__(self, **options) -> None:
+        o = VotingOptions(**options)
+        self.window, self.min_keypoints = o.max_misalignment, o.min_keypoints
+        self.settings, self.icp = vote_setup(self.kind, o)
+
+    def open(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
+             initial: TileOffset | None) -> tuple[np.ndarray, dict, TileOffset | None]:
+        """Search centre (the initial estimate, or zero), the diagnostics dict every match starts
+        with, and the refusal when there are too few keypoints or the tiles cannot overlap."""
+        center = np.zeros(3)
+        if initial is not None and np.isfinite(initial.d).all():
+            center = np.asarray(initial.d, float)
+        info = {"timings": {}, "keypoints": [len(kp_a), len(kp_b)], "window": self.window,
+                "center": center.tolist()}
+        refusal = None
+        if min(len(kp_a), len(kp_b)) < self.min_keypoints:
+            refusal = failed(tile_a, tile_b, "few_keypoints", info)
+        elif not boxes_overlap(tile_a, tile_b, center, self.window):
+            refusal = failed(tile_a, tile_b, "no_overlap", info)
+        return center, info, refusal
+
+    def finish(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints, votes,
+               info: dict, t0: float) -> TileOffset:
+        """Resolve the votes (dense check, refinement) and record the matcher's total time."""
+        refiner = self.icp.match if self.icp is not None else None
+        out = resolve(tile_a, kp_a, tile_b, kp_b, votes, self.settings, refiner, info)
+        out.info["timings"]["total"] = time.perf_counter() - t0
+        return out
 
 
-def finish(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints, votes, settings: VoteSettings,
-           icp: IcpMatcher | None, info: dict, t0: float) -> TileOffset:
-    """Resolve the votes (dense check, refinement) and record the matcher's total time."""
-    out = resolve(tile_a, kp_a, tile_b, kp_b, votes, settings, icp.match if icp is not None else None, info)
-    out.info["timings"]["total"] = time.perf_counter() - t0
-    return out
-
-
-class PairVotingMatcher:
+class PairVotingMatcher(VotingMatcher):
     """Translation voting over all keypoint pairs within the search window (see module docstring)."""
 
-    def __init__(self, max_misalignment: float = 3.0, inlier_radius: float = 0.1, min_keypoints: int = 10,
-                 min_inliers: int = 5, n_peaks: int = 5, check_points: int = 20_000, min_fitness: float = 0.5,
-                 ambiguity_ratio: float = 0.8, max_sd: float = 0.01, refine: bool = True,
-                 target_voxel: float = 0.05, tie_positions: str = "offset",
-                 window_length: float = 5.0, min_windows: int = 4) -> None:
-        self.window, self.min_keypoints = max_misalignment, min_keypoints
-        self.settings, self.icp = vote_setup("pair_voting", max_misalignment, inlier_radius, min_inliers, n_peaks,
-                                             check_points, min_fitness, ambiguity_ratio, max_sd, refine,
-                                             target_voxel, tie_positions, window_length, min_windows)
+    kind = "pair_voting"
 
     def match(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
               initial: TileOffset | None = None) -> TileOffset:
         t0 = time.perf_counter()
-        center, info = start(initial, kp_a, kp_b, self.window)
-        if min(len(kp_a), len(kp_b)) < self.min_keypoints:
-            return failed(tile_a, tile_b, "few_keypoints", info)
-        if not boxes_overlap(tile_a, tile_b, center, self.window):
-            return failed(tile_a, tile_b, "no_overlap", info)
+        center, info, refusal = self.open(tile_a, kp_a, tile_b, kp_b, initial)
+        if refusal is not None:
+            return refusal
         votes = pair_translations(kp_a.xyz, kp_b.xyz, center, self.window)
         info["timings"]["vote"] = time.perf_counter() - t0
-        return finish(tile_a, kp_a, tile_b, kp_b, votes, self.settings, self.icp, info, t0)
+        return self.finish(tile_a, kp_a, tile_b, kp_b, votes, info, t0)
 
 
 @hookimpl

@@ -307,10 +307,10 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
         return 0.0, 0.0, profile
     fine = np.arange(-0.03, 0.0301, 0.01)
     centres = np.concatenate([[0.0], rivals])
+    # the coarse ends first and last: alias_profile keeps the points inside at both, so the fine
+    # fitnesses count the same points as the coarse profile
     ts_fine = np.concatenate([[ts[0]], (centres[:, None] + fine).ravel(), [ts[-1]]])
-    order = np.argsort(ts_fine, kind="stable")
-    fitness = np.empty(len(ts_fine))
-    fitness[order] = alias_profile(target, moved, np.zeros(3), fit.axis, ts_fine[order], radius=radius)
+    fitness = alias_profile(target, moved, np.zeros(3), fit.axis, ts_fine, radius=radius)
     table = fitness[1:-1].reshape(len(centres), len(fine))
     misfit = 1.0 - table.max(axis=1)
     k = 1 + int(np.argmin(misfit[1:]))

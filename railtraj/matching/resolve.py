@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.consensus import (
@@ -109,11 +110,12 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     whose offsets follow the curve."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
+    tree = cKDTree(tile_a.xyz)  # run a's raw points, for the along-track profiles of every fit
 
     def fit_from(start: np.ndarray):
         inside = target.inside(tile_b.xyz + start, 0.3)
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
-                            chosen.fit.information, min_windows=s.min_windows)
+                            chosen.fit.information, tree, min_windows=s.min_windows)
         if fit is None:
             return None, inside, 0.0, 0.0
         rival, shift, info["alias_profile"] = alias_ratio(target, tile_b.xyz[inside], fit, votes.center,

@@ -139,21 +139,24 @@ def tie_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], t
     return ties.xyz_a - a_true
 
 
+def offset_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], offsets) -> dict:
+    """Error (east, north, up) of every ``ok`` tile-pair offset that has ties, keyed by the
+    offset's position in ``offsets``: the weighted mean of its ties' errors (its estimate where
+    its features are)."""
+    return {k: np.average(tie_errors(truth, delivered, o.ties), axis=0, weights=o.ties.weight)
+            for k, o in enumerate(offsets) if o.status == "ok" and o.ties is not None and len(o.ties)}
+
+
 def score_offsets(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], offsets) -> dict:
     """How far the ``ok`` tile-pair offsets are from the truth, where their ties are.
 
-    Per ok pair the error is the weighted mean of its ties' errors (the pair's estimate at its
-    features); reported as RMS and max per axis (east, north, up), and the share of pairs within
-    1 cm on every axis.
+    Per ok pair the error is :func:`offset_errors`; reported as RMS and max per axis (east,
+    north, up), and the share of pairs within 1 cm on every axis.
     """
-    per_pair = []
-    for o in offsets:
-        if o.status == "ok" and o.ties is not None and len(o.ties):
-            err = tie_errors(truth, delivered, o.ties)
-            per_pair.append(np.average(err, axis=0, weights=o.ties.weight))
+    per_pair = offset_errors(truth, delivered, offsets)
     if not per_pair:
         return {"ok_pairs": 0}
-    e = np.array(per_pair)
+    e = np.array(list(per_pair.values()))
     return {"ok_pairs": len(e), "rms_m": np.sqrt((e**2).mean(axis=0)).tolist(),
             "max_abs_m": np.abs(e).max(axis=0).tolist(),
             "within_1cm": float((np.abs(e) <= 0.01).all(axis=1).mean())}
