@@ -276,3 +276,47 @@ class TileOffset:
     @property
     def sd(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.cov), 0, None))
+
+
+@dataclass(frozen=True)
+class ControlObservations:
+    """Control points seen in the runs' clouds: absolute observations for the optimizer.
+
+    Row i says: run ``run_id[i]`` saw control point ``ids[i]`` at ``seen[i]`` (survey CRS, as
+    georeferenced by that run's input trajectory) at gps_time ``time[i]``; the point was surveyed
+    at ``xyz[i]`` with 1-sigma ``sd[i]``. ``pick_sd`` is how well the point was found in the cloud
+    (hand pick or automatic location), per axis; ``source`` is ``picked`` (control_obs.csv) or
+    ``located`` (found automatically). After correction ``seen + c_run(time)`` should equal ``xyz``.
+    """
+
+    ids: np.ndarray
+    run_id: np.ndarray
+    time: np.ndarray
+    seen: np.ndarray
+    xyz: np.ndarray
+    sd: np.ndarray
+    pick_sd: np.ndarray
+    source: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("ids", "run_id", "source"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=object).reshape(-1))
+        object.__setattr__(self, "time", _as_array("time", self.time, ()))
+        for name in ("seen", "xyz", "sd", "pick_sd"):
+            object.__setattr__(self, name, _as_array(name, getattr(self, name), (3,)))
+        n = len(self.time)
+        if any(len(getattr(self, k)) != n for k in ("ids", "run_id", "seen", "xyz", "sd", "pick_sd", "source")):
+            raise ValueError("control observations: all columns must have the same length")
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    @classmethod
+    def empty(cls) -> ControlObservations:
+        z3 = np.zeros((0, 3))
+        return cls([], [], np.zeros(0), z3, z3, z3, z3, [])
+
+    def cov(self) -> np.ndarray:
+        """(n, 3, 3) covariance of ``xyz - seen``: survey sd and pick sd, per axis."""
+        var = self.sd ** 2 + self.pick_sd ** 2
+        return np.einsum("ni,ij->nij", var, np.eye(3))
