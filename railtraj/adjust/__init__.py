@@ -1,0 +1,1 @@
+"""Global adjustment: a continuous correction per run, observations as sparse rows, a banded robust solve."""

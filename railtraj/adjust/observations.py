@@ -1,0 +1,111 @@
+"""Observations of the corrections as whitened rows of one sparse linear system.
+
+Every observation is a 3-vector ``sum_j w_j c(knot_j) = v`` with covariance ``C``. It becomes three
+rows ``W (sum_j w_j c_j) = W v`` with ``W^T W = C^-1`` (rows of ``W`` may be zero: a direction the
+observation does not constrain). All are built at once with numpy broadcasting, never one
+observation at a time, and stacked into a :class:`Block` per kind:
+
+* ``prior``: ``c_r(knot) = 0`` with the trajectory's reported sd (pinned where GNSS was good);
+* ``smoothness``: second differences of consecutive knots ``= 0`` (changes of drift rate, not
+  the drift itself, are penalised), sd from an INS error model (see :func:`smoothness`);
+* ``tie``: ``c_b(t_b) - c_a(t_a) = x_a - x_b`` (a feature seen by two runs);
+* ``offset``: a weak tile pair ``c_b(t_b) - c_a(t_a) = d`` in its constrained directions only;
+* ``control``: ``c_r(t) = X - seen`` (a surveyed point seen in a run's cloud).
+
+Each block also carries an information weight per observation (a tie of a pair with n ties
+weighs 1/n) kept apart from the whitening, so that the robust test in :mod:`railtraj.adjust.solve`
+judges a residual by the observation's own sd, whatever its weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from railtraj.adjust.model import CorrectionModel
+
+
+@dataclass
+class Block:
+    """Whitened rows of one kind of observation: ``A x ~ b``, 3 rows per observation."""
+
+    kind: str
+    A: sp.csr_matrix  # (3n, n_unknowns)
+    b: np.ndarray  # (3n,)
+    weight: np.ndarray  # (n,) information weight
+    dof: np.ndarray  # (n,) constrained directions (non-zero rows of W)
+    robust: bool  # judged by the robust kernel (ties, offsets, control) or trusted (model priors)
+    labels: dict[str, np.ndarray] | None = None  # columns naming each observation (for reports)
+
+    def __len__(self) -> int:
+        return len(self.weight)
+
+
+def assemble(kind: str, n_unknowns: int, knots: np.ndarray, w: np.ndarray, value: np.ndarray,
+             whiten: np.ndarray, weight: np.ndarray | None = None, robust: bool = True,
+             labels: dict[str, np.ndarray] | None = None) -> Block:
+    """Rows ``whiten_i @ (sum_j w[i, j] c[knots[i, j]] - value_i)`` for n observations.
+
+    ``knots``, ``w``: (n, m); ``value``: (n, 3); ``whiten``: (n, 3, 3).
+    """
+    n, m = knots.shape
+    rows = np.broadcast_to(3 * np.arange(n)[:, None, None, None] + np.arange(3)[None, :, None, None], (n, 3, 3, m))
+    cols = np.broadcast_to(3 * knots[:, None, None, :] + np.arange(3)[None, None, :, None], (n, 3, 3, m))
+    vals = whiten[:, :, :, None] * w[:, None, None, :]
+    A = sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, n_unknowns))
+    A.sum_duplicates()
+    b = np.einsum("nij,nj->ni", whiten, value).ravel()
+    dof = (np.abs(whiten).sum(axis=2) > 0).sum(axis=1)
+    return Block(kind, A, b, np.ones(n) if weight is None else np.asarray(weight, float), dof, robust, labels)
+
+
+def isotropic(sd: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) whitening for per-axis sd (n, 3) or one sd per observation (n,)."""
+    sd = np.asarray(sd, float)
+    sd = np.repeat(sd[:, None], 3, axis=1) if sd.ndim == 1 else sd
+    return np.einsum("ni,ij->nij", 1.0 / sd, np.eye(3))
+
+
+def from_covariance(cov: np.ndarray, max_sd: float = np.inf) -> np.ndarray:
+    """(n, 3, 3) whitening for full covariances; directions with sd above ``max_sd`` get no row."""
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.maximum(vals, 1e-12)
+    scale = np.where(np.sqrt(vals) <= max_sd, 1.0 / np.sqrt(vals), 0.0)
+    return np.einsum("ni,nji->nij", scale, vecs)
+
+
+def relative(model: CorrectionModel, run_a: str, t_a: np.ndarray, run_b: str, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Knots and weights of ``c_b(t_b) - c_a(t_a)``."""
+    ka, wa = model.weights(run_a, t_a)
+    kb, wb = model.weights(run_b, t_b)
+    return np.hstack([ka, kb]), np.hstack([-wa, wb])
+
+
+def prior(model: CorrectionModel, run_id: str, sd_at_knots: np.ndarray) -> Block:
+    """``c_r(knot) = 0`` with the run's reported sd at each knot."""
+    rk = model.runs[run_id]
+    knots = rk.first + np.arange(rk.count)[:, None]
+    return assemble("prior", model.n_unknowns, knots, np.ones((rk.count, 1)), np.zeros((rk.count, 3)),
+                    isotropic(sd_at_knots), robust=False)
+
+
+def smoothness(model: CorrectionModel, run_id: str, accel_sd: float) -> Block:
+    """Second differences of consecutive knots ``= 0``.
+
+    The INS error's acceleration is modelled as white noise of density ``accel_sd`` (m/s^1.5):
+    over knots ``dt`` seconds apart a second difference then has sd ``accel_sd * dt^1.5``. A
+    constant drift rate costs nothing; a change of rate is what is penalised.
+    """
+    rk = model.runs[run_id]
+    if rk.count < 3:
+        return assemble("smoothness", model.n_unknowns, np.zeros((0, 3), np.int64), np.zeros((0, 3)),
+                        np.zeros((0, 3)), np.zeros((0, 3, 3)), robust=False)
+    k = rk.first + np.arange(rk.count - 2)
+    dt = model.knot_seconds(run_id)
+    span = 0.5 * (dt[:-1] + dt[1:])
+    sd = np.maximum(accel_sd * span ** 1.5, 1e-6)
+    n = len(k)
+    return assemble("smoothness", model.n_unknowns, np.column_stack([k, k + 1, k + 2]),
+                    np.tile([1.0, -2.0, 1.0], (n, 1)), np.zeros((n, 3)), isotropic(sd), robust=False)

@@ -1,0 +1,223 @@
+"""The ``spline`` optimizer: continuous per-run corrections from one sparse least-squares solve.
+
+The thesis' g2o graph with fixed attitude, rebuilt so that it follows a drifting offset exactly:
+
+1. **Model** (:mod:`railtraj.adjust.model`): each run's position correction is linear between
+   knots every ``knot_spacing`` metres travelled (or seconds); observations attach at their own
+   time through interpolation weights.
+2. **Observations** (:mod:`railtraj.adjust.observations`): priors from the trajectory's reported
+   sd, second-difference smoothness from an INS error model, ties, weak tile offsets in their
+   constrained directions with their full covariance, control points as absolute observations.
+3. **Solve** (:mod:`railtraj.adjust.solve`): the problem is linear, so one sparse banded solve
+   per robust iteration (GNC with truncated least squares on whitened residuals), and the
+   posterior sd from the band of the inverse.
+
+``self.diagnostics`` holds counts, rejected observations, iterations and under-constrained spans
+after :meth:`optimize`; the pipeline writes it to metrics.json and the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from railtraj.adjust import observations as obs
+from railtraj.adjust.model import CorrectionModel
+from railtraj.adjust.solve import solve
+from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
+from railtraj.hookspecs import hookimpl
+
+log = logging.getLogger(__name__)
+
+#: statuses whose offset is reliable across the track and in height, though not along it
+WEAK_STATUSES = ("degenerate", "ambiguous")
+#: at most this many rejected observations are listed individually in the diagnostics
+MAX_LISTED = 200
+
+
+@dataclass
+class SplineConfig:
+    name: str = "spline"
+    knot_spacing: float = 5.0          # distance between correction knots (knot_unit)
+    knot_unit: str = "m"               # m: metres travelled (default); s: seconds
+    drift_accel_sd: float = 0.2        # INS model: white-noise density of the drift's acceleration, m/s^1.5
+    tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
+    offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
+    max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
+    use_weak_offsets: bool = True      # degenerate/ambiguous pairs constrain across and up
+    robust_confidence: float = 0.999   # chi-square level beyond which an observation is rejected
+    default_sd_m: float = 1.0          # prior sd where the trajectory reports none
+    prior_correlation: float = 50.0    # (knot_unit) length over which the reported sd is one independent error
+    min_sd_m: float = 0.005            # floor on the reported sd
+    max_gap: float = 10.0              # knots without any observation before a stretch is reported
+    weak_span_sd_m: float = 0.05       # ... when the trajectory's own sd there exceeds this
+
+
+class SplineOptimizer:
+    """Fits smooth per-run corrections to ties, weak offsets and control in one sparse solve."""
+
+    def __init__(self, **options) -> None:
+        self.config = SplineConfig(**options)
+        self.diagnostics: dict = {}
+
+    def optimize(self, trajectories: dict[str, Trajectory], ties: Sequence[Ties],
+                 offsets: Sequence[TileOffset], control: ControlObservations | None = None) -> dict[str, Trajectory]:
+        cfg, t0 = self.config, time.perf_counter()
+        model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit)
+        blocks = [b for r in sorted(trajectories) for b in self._model_blocks(model, r, trajectories[r])]
+        data = [self._ties(model, ties), self._offsets(model, offsets, trajectories),
+                self._control(model, control, trajectories)]
+        data = [b for b in data if b is not None]
+        if not any(len(b) for b in data):
+            note = "optimizer spline: no ties, usable tile offsets or control; trajectories left unchanged"
+            log.warning(note)
+            self.diagnostics = {"optimizer": "spline", "notes": [note]}
+            return dict(trajectories)
+        sol = solve(blocks + data, model.n_unknowns, confidence=cfg.robust_confidence)
+        cov_blocks = sol.banded.covariance_blocks()
+        out, spans = {}, []
+        for r in sorted(trajectories):
+            traj = trajectories[r]
+            corr, sd = _evaluate(model, r, traj.time, sol, cov_blocks)
+            out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
+            spans += self._weak_spans(model, r, traj, data)
+        self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
+        log.info("optimizer spline: %d runs, %d knots, %s; %d GNC iterations, %.2f s", len(trajectories),
+                 model.n_knots, ", ".join(f"{b.kind} {len(b)}" for b in data), sol.iterations,
+                 time.perf_counter() - t0)
+        return out
+
+    def _model_blocks(self, model: CorrectionModel, run_id: str, traj: Trajectory) -> list[obs.Block]:
+        cfg = self.config
+        times = model.runs[run_id].knot_time
+        sd = traj.sd_at(times)
+        sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
+        # the smoother's error is correlated: one knot of prior per correlation length, not per knot
+        sd = sd * np.sqrt(max(cfg.prior_correlation / cfg.knot_spacing, 1.0))
+        return [obs.prior(model, run_id, sd), obs.smoothness(model, run_id, cfg.drift_accel_sd)]
+
+    def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
+        parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]
+        if not parts:
+            return None
+        k, w = zip(*(obs.relative(model, t.run_a, t.time_a, t.run_b, t.time_b) for t in parts), strict=True)
+        value = np.vstack([t.xyz_a - t.xyz_b for t in parts])
+        weight = np.concatenate([t.weight for t in parts])
+        labels = {"run_a": np.concatenate([[t.run_a] * len(t) for t in parts]),
+                  "run_b": np.concatenate([[t.run_b] * len(t) for t in parts]),
+                  "time_a": np.concatenate([t.time_a for t in parts]),
+                  "time_b": np.concatenate([t.time_b for t in parts])}
+        n = len(weight)
+        return obs.assemble("tie", model.n_unknowns, np.vstack(k), np.vstack(w), value,
+                            obs.isotropic(np.full(n, self.config.tie_sigma_m)), weight, labels=labels)
+
+    def _offsets(self, model: CorrectionModel, offsets: Sequence[TileOffset],
+                 trajectories: dict[str, Trajectory]) -> obs.Block | None:
+        cfg = self.config
+        use = [o for o in offsets if cfg.use_weak_offsets and _usable_weak(o, trajectories)]
+        if not use:
+            return None
+        ka, wa, kb, wb = [], [], [], []
+        for o in use:  # one pair each: a handful per tile pair, not per point
+            k1, w1 = model.weights(o.run_a, np.array([o.info["time_a"]]))
+            k2, w2 = model.weights(o.run_b, np.array([o.info["time_b"]]))
+            ka.append(k1), wa.append(w1), kb.append(k2), wb.append(w2)
+        knots = np.hstack([np.vstack(ka), np.vstack(kb)])
+        w = np.hstack([-np.vstack(wa), np.vstack(wb)])
+        cov = np.stack([o.cov for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
+        labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
+        labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
+        return obs.assemble("offset", model.n_unknowns, knots, w, np.stack([o.d for o in use]),
+                            obs.from_covariance(cov, cfg.max_weak_sd_m), labels=labels)
+
+    def _control(self, model: CorrectionModel, control: ControlObservations | None,
+                 trajectories: dict[str, Trajectory]) -> obs.Block | None:
+        if control is None or not len(control):
+            return None
+        keep = np.isin(control.run_id, list(trajectories))
+        c = control
+        k, w = [], []
+        for r in np.unique(c.run_id[keep]):
+            m = keep & (c.run_id == r)
+            kr, wr = model.weights(str(r), c.time[m])
+            k.append((np.flatnonzero(m), kr, wr))
+        order = np.concatenate([i for i, _, _ in k])
+        knots, weights = np.vstack([kr for _, kr, _ in k]), np.vstack([wr for _, _, wr in k])
+        labels = {"id": c.ids[order], "run_id": c.run_id[order], "time": c.time[order]}
+        return obs.assemble("control", model.n_unknowns, knots, weights, (c.xyz - c.seen)[order],
+                            obs.from_covariance(c.cov()[order]), labels=labels)
+
+    def _weak_spans(self, model: CorrectionModel, run_id: str, traj: Trajectory, data: list[obs.Block]) -> list[dict]:
+        """Stretches of a run longer than ``max_gap`` knots with no observation, where the
+        trajectory's own sd is above ``weak_span_sd_m``: the correction rests on the prior there."""
+        cfg = self.config
+        rk = model.runs[run_id]
+        times = [blk.labels[t][blk.labels[r] == run_id] for blk in data
+                 for r, t in (("run_id", "time"), ("run_a", "time_a"), ("run_b", "time_b")) if r in blk.labels]
+        seen = np.sort(rk.param_at(np.concatenate(times).astype(float))) if times else np.zeros(0)
+        ends = np.concatenate([[-np.inf], seen, [np.inf]])
+        param = rk.epoch_param
+        gap = np.searchsorted(seen, param)
+        lo, hi = ends[gap], ends[gap + 1]
+        sd = traj.sd.max(axis=1) if traj.sd is not None else np.full(len(param), cfg.default_sd_m)
+        weak = (hi - lo > cfg.max_gap * model.spacing) & (sd > cfg.weak_span_sd_m)
+        spans = []
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], weak.astype(np.int8), [0]])))
+        for i0, i1 in zip(edges[0::2], edges[1::2], strict=True):
+            span = {"run_id": run_id, "time_from": float(traj.time[i0]), "time_to": float(traj.time[i1 - 1]),
+                    "length": float(param[i1 - 1] - param[i0]), "max_input_sd_m": float(sd[i0:i1].max())}
+            spans.append(span)
+            log.warning("run %s, %.1f-%.1f s (%.0f %s): no tie, tile offset or control point; the correction "
+                        "there is interpolated and rests on the trajectory's sd (up to %.2f m)", run_id,
+                        span["time_from"], span["time_to"], span["length"], model.unit, span["max_input_sd_m"])
+        return spans
+
+    def _report(self, blocks: list[obs.Block], sol, model: CorrectionModel, spans: list[dict],
+                seconds: float) -> dict:
+        counts, rejected = {}, []
+        for blk, g, r2 in zip(blocks, sol.gnc_weight, sol.chi2_per_obs, strict=True):
+            if not blk.robust:
+                continue
+            bad = np.flatnonzero(g < 0.5)
+            counts[blk.kind] = {"used": int(len(blk) - len(bad)), "rejected": int(len(bad))}
+            for i in bad[:MAX_LISTED]:
+                row = {k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in (blk.labels or {}).items()}
+                rejected.append({"kind": blk.kind, **row, "whitened_residual": float(np.sqrt(r2[i]))})
+        return {"optimizer": "spline", "config": asdict(self.config), "knots": model.n_knots,
+                "observations": counts, "rejected": rejected, "gnc_iterations": sol.iterations,
+                "bandwidth": sol.banded.bandwidth, "under_constrained": spans, "seconds": round(seconds, 3),
+                "notes": []}
+
+
+def _evaluate(model: CorrectionModel, run_id: str, times: np.ndarray, sol, cov_blocks) -> tuple[np.ndarray, np.ndarray]:
+    """Correction (n, 3) and its posterior sd (n, 3) at ``times``."""
+    k, w = model.weights(run_id, times)
+    corr = np.zeros((len(times), 3))
+    var = np.zeros((len(times), 3))
+    for a in range(3):
+        p, q = 3 * k[:, 0] + a, 3 * k[:, 1] + a
+        corr[:, a] = w[:, 0] * sol.x[p] + w[:, 1] * sol.x[q]
+        var[:, a] = (w[:, 0] ** 2 * sol.banded.covariance(p, p, cov_blocks)
+                     + 2 * w[:, 0] * w[:, 1] * sol.banded.covariance(p, q, cov_blocks)
+                     + w[:, 1] ** 2 * sol.banded.covariance(q, q, cov_blocks))
+    return corr, np.sqrt(np.maximum(var, 0.0))
+
+
+def _usable_weak(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
+    """A degenerate/ambiguous pair with a finite offset, covariance and observation times."""
+    if o.status not in WEAK_STATUSES or o.run_a not in trajectories or o.run_b not in trajectories:
+        return False
+    times = [o.info.get("time_a", np.nan), o.info.get("time_b", np.nan)]
+    return bool(np.isfinite(o.d).all() and np.isfinite(o.cov).all() and np.isfinite(times).all())
+
+
+__all__ = ["SplineConfig", "SplineOptimizer"]
+
+
+@hookimpl
+def railtraj_register_stages(registry) -> None:
+    registry.add("optimizer", "spline", SplineOptimizer, SplineConfig)
