@@ -38,6 +38,7 @@ class Block:
     dof: np.ndarray  # (n,) constrained directions (non-zero rows of W)
     robust: bool  # judged by the robust kernel (ties, offsets, control) or trusted (model priors)
     labels: dict[str, np.ndarray] | None = None  # columns naming each observation (for reports)
+    per_axis: sp.csr_matrix | None = None  # (n, n_knots) when the whitening is a scalar per observation
 
     def __len__(self) -> int:
         return len(self.weight)
@@ -53,12 +54,21 @@ def assemble(kind: str, n_unknowns: int, knots: np.ndarray, w: np.ndarray, value
     n, m = knots.shape
     rows = np.broadcast_to(3 * np.arange(n)[:, None, None, None] + np.arange(3)[None, :, None, None], (n, 3, 3, m))
     cols = np.broadcast_to(3 * knots[:, None, None, :] + np.arange(3)[None, None, :, None], (n, 3, 3, m))
-    vals = whiten[:, :, :, None] * w[:, None, None, :]
-    A = sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, n_unknowns))
+    vals = (whiten[:, :, :, None] * w[:, None, None, :]).ravel()
+    nz = vals != 0  # isotropic whitening: keep 3 x m entries per observation, not 9 x m
+    A = sp.csr_matrix((vals[nz], (rows.ravel()[nz], cols.ravel()[nz])), shape=(3 * n, n_unknowns))
     A.sum_duplicates()
     b = np.einsum("nij,nj->ni", whiten, value).ravel()
     dof = (np.abs(whiten).sum(axis=2) > 0).sum(axis=1)
-    return Block(kind, A, b, np.ones(n) if weight is None else np.asarray(weight, float), dof, robust, labels)
+    scalar = whiten[:, 0, 0]
+    per_axis = None
+    if n and np.array_equal(whiten, scalar[:, None, None] * np.eye(3)):  # the 3 axes decouple
+        rows = np.broadcast_to(np.arange(n)[:, None], (n, m))
+        per_axis = sp.csr_matrix(((scalar[:, None] * w).ravel(), (rows.ravel(), knots.ravel())),
+                                 shape=(n, n_unknowns // 3))
+        per_axis.sum_duplicates()
+    weight = np.ones(n) if weight is None else np.asarray(weight, float)
+    return Block(kind, A, b, weight, dof, robust, labels, per_axis)
 
 
 def isotropic(sd: np.ndarray) -> np.ndarray:

@@ -42,10 +42,12 @@ class Solution:
 class BandedSystem:
     """A symmetric positive definite sparse matrix, reordered to a band, factorised once."""
 
-    def __init__(self, N: sp.spmatrix, min_block: int = 12) -> None:
+    def __init__(self, N: sp.spmatrix, min_block: int = 12, perm: np.ndarray | None = None) -> None:
         N = sp.csr_matrix(N)
         self.n = N.shape[0]
-        self.perm = reverse_cuthill_mckee(N, symmetric_mode=True).astype(np.int64)
+        if perm is None:  # the pattern does not change with the robust weights: reuse the ordering
+            perm = reverse_cuthill_mckee(N, symmetric_mode=True).astype(np.int64)
+        self.perm = perm
         self.inv = np.empty_like(self.perm)
         self.inv[self.perm] = np.arange(self.n)
         P = sp.triu(N[self.perm][:, self.perm], format="coo")
@@ -108,18 +110,78 @@ class BandedSystem:
         return out
 
 
-def normal_equations(blocks: list[Block], weights: list[np.ndarray], n: int) -> tuple[sp.csr_matrix, np.ndarray]:
-    """``sum A^T diag(w) A`` and ``sum A^T diag(w) b`` with each observation's weight on its 3 rows."""
-    N = sp.csr_matrix((n, n))
-    rhs = np.zeros(n)
-    for blk, w in zip(blocks, weights, strict=True):
-        if not len(blk):
-            continue
-        w3 = np.repeat(w, 3)
-        Aw = blk.A.multiply(w3[:, None]).tocsr()
-        N = N + (blk.A.T @ Aw)
-        rhs += Aw.T @ blk.b
-    return N.tocsr(), rhs
+class NormalEquations:
+    """``sum A^T diag(w) A`` and ``sum A^T diag(w) b`` for changing robust weights ``w``.
+
+    Trusted blocks are summed once. A block whose whitening is a scalar per observation (ties)
+    is one (n, knots) matrix shared by the three axes; its Gram entries are precomputed per
+    observation, so a new set of weights costs one ``bincount``, not a sparse product.
+    """
+
+    def __init__(self, blocks: list[Block], n: int) -> None:
+        self.blocks, self.n = blocks, n
+        self.fixed = sp.csr_matrix((n, n))
+        self.fixed_rhs = np.zeros(n)
+        self.gram: dict[int, tuple] = {}
+        for k, blk in enumerate(blocks):
+            if not len(blk):
+                continue
+            if not blk.robust:
+                N, r = _product(blk, blk.weight)
+                self.fixed, self.fixed_rhs = self.fixed + N, self.fixed_rhs + r
+            elif blk.per_axis is not None:
+                self.gram[k] = _gram_cache(blk.per_axis)
+
+    def build(self, weights: list[np.ndarray]) -> tuple[sp.csr_matrix, np.ndarray]:
+        N, rhs = self.fixed, self.fixed_rhs.copy()
+        for k, (blk, w) in enumerate(zip(self.blocks, weights, strict=True)):
+            if not blk.robust or not len(blk):
+                continue
+            w = blk.weight * w
+            if k in self.gram:
+                obs_of, products, pos, pattern = self.gram[k]
+                data = np.bincount(pos, weights=products * w[obs_of], minlength=pattern.nnz)
+                N1 = _symmetric(sp.csr_matrix((data, pattern.indices, pattern.indptr), shape=pattern.shape))
+                N = N + sp.kron(N1, sp.identity(3), format="csr")
+                rhs += (blk.per_axis.T @ (w[:, None] * blk.b.reshape(-1, 3))).ravel()
+            else:
+                Nk, r = _product(blk, w)
+                N, rhs = N + Nk, rhs + r
+        return N.tocsr(), rhs
+
+
+def _product(blk: Block, w: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    Aw = blk.A.multiply(np.repeat(w, 3)[:, None]).tocsr()
+    return (blk.A.T @ Aw).tocsr(), Aw.T @ blk.b
+
+
+def _gram_cache(A1: sp.csr_matrix) -> tuple:
+    """Per observation, every product ``A1[i, j] A1[i, l]`` and where it lands in ``A1^T A1``."""
+    counts = np.diff(A1.indptr)
+    m = int(counts.max())
+    n = A1.shape[0]
+    cols = np.zeros((n, m), np.int64)
+    vals = np.zeros((n, m))
+    slot = np.arange(A1.nnz) - np.repeat(A1.indptr[:-1], counts)
+    row = np.repeat(np.arange(n), counts)
+    cols[row, slot], vals[row, slot] = A1.indices, A1.data
+    a, b = np.triu_indices(m)  # the upper triangle: A1^T A1 is symmetric
+    j, l = cols[:, a].ravel(), cols[:, b].ravel()
+    products = (vals[:, a] * vals[:, b] * np.where(a == b, 1.0, 2.0)).ravel()
+    obs_of = np.repeat(np.arange(n), len(a))
+    keep = products != 0
+    j, l, products, obs_of = np.minimum(j, l)[keep], np.maximum(j, l)[keep], products[keep], obs_of[keep]
+    K = A1.shape[1]
+    uniq, pos = np.unique(j * K + l, return_inverse=True)
+    pattern = sp.csr_matrix((np.ones(len(uniq)), (uniq // K, uniq % K)), shape=(K, K))
+    pattern.sort_indices()
+    # csr_matrix from sorted unique (row, col) pairs keeps their order: data index == position in uniq
+    return obs_of, products, pos.astype(np.int64), pattern
+
+
+def _symmetric(upper: sp.csr_matrix) -> sp.csr_matrix:
+    """The full symmetric matrix from its upper triangle holding doubled off-diagonal sums."""
+    return (0.5 * (upper + upper.T)).tocsr()  # off-diagonal: halves on both sides; diagonal: kept
 
 
 def squared_residuals(blk: Block, x: np.ndarray) -> np.ndarray:
@@ -129,15 +191,16 @@ def squared_residuals(blk: Block, x: np.ndarray) -> np.ndarray:
 
 
 def solve(blocks: list[Block], n: int, confidence: float = 0.999, max_iterations: int = 60,
-          mu_step: float = 1.4) -> Solution:
+          mu_step: float = 2.0) -> Solution:
     """Least squares over all blocks, with GNC-TLS on the robust ones (weights 0..1)."""
     robust = [b.robust and len(b) > 0 for b in blocks]
     bound = [chi2.ppf(confidence, np.maximum(b.dof, 1)) for b in blocks]
     gnc = [np.ones(len(b)) for b in blocks]
     mu, it = None, 0
+    normal = NormalEquations(blocks, n)
     while True:
-        N, rhs = normal_equations(blocks, [b.weight * g for b, g in zip(blocks, gnc, strict=True)], n)
-        system = BandedSystem(N)
+        N, rhs = normal.build(gnc)
+        system = BandedSystem(N, perm=None if it == 0 else system.perm)
         x = system.solve(rhs)
         r2 = [squared_residuals(b, x) if len(b) else np.zeros(0) for b in blocks]
         if not any(robust) or it >= max_iterations:
