@@ -85,7 +85,8 @@ class Piecewise:
                 "curvature_mm_per_m2": (frame @ self.coefs[2] * 1000).round(4).tolist(),
                 "window_resid_sd_mm": (self.resid_sd * 1000).round(2).tolist(),
                 "windows": np.round(self.windows, 4).tolist(), "windows_used": self.n_used,
-                "axis": self.axis.tolist()}
+                "axis": self.axis.tolist(), "ref_point": (self.origin + self.s_ref * self.axis).tolist(),
+                "gradient": self.gradient.tolist(), "fit_cov": self.cov.tolist()}
 
 
 def track_axis(information: np.ndarray) -> np.ndarray:

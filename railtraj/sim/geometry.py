@@ -29,6 +29,7 @@ class GeometrySpec:
     tracks: int = 1
     track_spacing: float = 4.0
     rib_spacing: float = 1.5
+    ring_spacing: float | None = None  # segmental lining: a ring joint step every so many metres (circular)
     sleeper_spacing: float | None = 0.65  # not a divisor of rib_spacing: no exact 3 m alias
     slab_track_in_circular: bool = True
     niche_spacing: float = 150.0
@@ -163,6 +164,8 @@ def _furnish(b: MeshBuilder, spec: GeometrySpec, secs: SectionSet, kind: str, s0
         return holes, breaks
     if kind == "rect" and spec.rib_spacing:
         objects.ribs(b, s0, s1, hw, spec.rib_spacing)
+    if kind == "circular" and spec.ring_spacing:
+        objects.ring_joints(b, s0, s1, prof, spec.ring_spacing)
     if kind == "rect":
         for s in _spots(rng, s0, s1, spec.niche_spacing, 5.0):
             side = int(rng.choice([-1, 1]))

@@ -46,6 +46,17 @@ def ribs(b: MeshBuilder, s0: float, s1: float, half_width: float, spacing: float
         b.band(outer, inner, s, s + width, Surface.RIB)
 
 
+def ring_joints(b: MeshBuilder, s0: float, s1: float, profile: Profile, spacing: float,
+                width: float = 0.08, depth: float = 0.025) -> None:
+    """Segmental lining: a raised band ``depth`` thick at every ring joint of a bored tunnel."""
+    outer = profile.uv[1:] if len(profile.uv) > 2 else profile.uv
+    centre = np.asarray(profile.centre, float)
+    radial = outer - centre
+    inner = centre + radial * (1.0 - depth / np.linalg.norm(radial, axis=1, keepdims=True))
+    for s in np.arange(s0 + spacing / 2, s1 - width, spacing):
+        b.band(outer, inner, s, s + width, Surface.LINING)
+
+
 def niche(b: MeshBuilder, s: float, side: int, half_width: float, length: float = 1.4,
           depth: float = 0.9) -> Hole:
     """An emergency-exit niche cut into a vertical wall, with a door at its back.

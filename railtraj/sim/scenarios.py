@@ -123,7 +123,40 @@ def _feature_poor() -> Scenario:
          RunSpec("run_b", direction=-1, speed=10.0, start_time=300600.0)))
 
 
-CATALOGUE = {s.name: s for s in (_thesis(), _mixed(), _portal_trap(), _control(), _feature_poor())}
+def _commensurate() -> Scenario:
+    return Scenario(
+        "commensurate", "straight ribbed tunnel whose ribs (1.5 m) and sleepers (0.6 m, a standard "
+        "spacing) repeat together every 3.0 m, niches and boxes 20-40 m apart; 2 opposite runs",
+        GeometrySpec(sections=(("cutting", 40.0), ("rect", 300.0), ("cutting", 40.0)),
+                     alignment=Alignment(grades=((1e9, 0.003),)), tracks=1, sleeper_spacing=0.6,
+                     niche_spacing=60.0, box_spacing=45.0, layout_seed=11),
+        (RunSpec("run_a", direction=1, speed=10.0, start_time=300000.0),
+         RunSpec("run_b", direction=-1, speed=12.0, start_time=300600.0)))
+
+
+def _commensurate_fast() -> Scenario:
+    base = _commensurate()
+    return replace(
+        base, name="commensurate_fast",
+        description="the commensurate tunnel driven at 18 and 20 m/s by a sparser scanner (125 profiles/s: "
+        "profiles 15 cm apart, 350 points each)",
+        runs=(RunSpec("run_a", direction=1, speed=18.0, start_time=300000.0),
+              RunSpec("run_b", direction=-1, speed=20.0, start_time=300600.0)),
+        scanner=ScannerSpec(profile_rate=125.0, points_per_profile=350))
+
+
+def _tube() -> Scenario:
+    return Scenario(
+        "tube", "segmental-lining bored tube on slab track: ring joints every 1.25 m and 100+ m "
+        "without another feature (a cabinet every ~150 m); 2 opposite runs",
+        GeometrySpec(sections=(("cutting", 40.0), ("circular", 450.0), ("cutting", 40.0)), tracks=1,
+                     ring_spacing=1.25, box_spacing=150.0, tray_length=0.0, niche_spacing=0.0, layout_seed=5),
+        (RunSpec("run_a", direction=1, speed=12.0, start_time=300000.0),
+         RunSpec("run_b", direction=-1, speed=10.0, start_time=300600.0)))
+
+
+CATALOGUE = {s.name: s for s in (_thesis(), _mixed(), _portal_trap(), _control(), _feature_poor(),
+                                 _commensurate(), _commensurate_fast(), _tube())}
 DEMO = "mixed"
 
 

@@ -140,11 +140,22 @@ def tie_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], t
 
 
 def offset_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], offsets) -> dict:
-    """Error (east, north, up) of every ``ok`` tile-pair offset that has ties, keyed by the
-    offset's position in ``offsets``: the weighted mean of its ties' errors (its estimate where
-    its features are)."""
-    return {k: np.average(tie_errors(truth, delivered, o.ties), axis=0, weights=o.ties.weight)
-            for k, o in enumerate(offsets) if o.status == "ok" and o.ties is not None and len(o.ties)}
+    """Error (east, north, up) of every ``ok`` tile-pair offset, keyed by the offset's position in
+    ``offsets``: the weighted mean of its ties' errors (its estimate where its features are), or
+    for a pair without ties (resolved jointly along the track) the error at its reference point."""
+    from railtraj.data import Ties
+
+    out = {}
+    for k, o in enumerate(offsets):
+        if o.status != "ok":
+            continue
+        if o.ties is not None and len(o.ties):
+            out[k] = np.average(tie_errors(truth, delivered, o.ties), axis=0, weights=o.ties.weight)
+        elif "ref_point" in o.info.get("piecewise", {}):  # an offset observed at its reference point
+            xyz_b = np.array([o.info["piecewise"]["ref_point"]])
+            tie = Ties(o.run_a, o.run_b, [o.info["time_a"]], [o.info["time_b"]], xyz_b + o.d, xyz_b, [1.0])
+            out[k] = tie_errors(truth, delivered, tie)[0]
+    return out
 
 
 def score_offsets(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], offsets) -> dict:

@@ -1,0 +1,133 @@
+"""End-to-end accuracy per scenario and seed, scored against the simulator's truth. Run:
+
+    .venv/bin/python benchmarks/bench_alongtrack.py [--scenarios commensurate mixed] [--seeds 0 1 2]
+        [--optimizer spline] [--size 1.0]
+
+For each survey (generated once, cached under $RAILTRAJ_CACHE or ~/.cache/railtraj/bench) it runs
+the default pipeline and prints one table row:
+
+* inter-run horizontal RMS / max before -> after, vertical RMS after (all run pairs pooled);
+* absolute horizontal RMS after, and its distance to the sd-weighted average of the runs' input
+  errors (the best relative observations allow without control: ``bound``);
+* the worst ``ok`` tile-pair offset and the worst tie, against the truth, and ties over 5 cm;
+* the share of tile pairs whose along-track offset is used (``ok`` or resolved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
+from railtraj.plugins import registry
+from railtraj.sim import generate, load_truth
+from railtraj.sim.score import offset_errors, position_error, score_trajectories, tie_errors
+
+
+def survey_for(scenario: str, seed: int, size: float) -> Path:
+    cache = Path(os.environ.get("RAILTRAJ_CACHE", Path.home() / ".cache" / "railtraj"))
+    root = cache / "bench" / (f"{scenario}-{seed}" + ("" if size == 1.0 else f"-x{size}"))
+    if not (root / "survey").is_dir():
+        generate(scenario, root, seed=seed, size=size, overwrite=True)
+    return root / "survey"
+
+
+def averaging_bound_gap(truth, before, after, chainage) -> float:
+    """RMS (horizontal) of each run's corrected error minus the sd-weighted average of all runs'
+    input errors at the same chainage: how far the absolute result is from what relative
+    observations allow."""
+    runs = sorted(after)
+    err_in, err_out, sd, ch = {}, {}, {}, {}
+    for r in runs:
+        e_in, ok = position_error(truth[r], before[r])
+        e_out, _ = position_error(truth[r], after[r])
+        ch[r] = np.interp(before[r].time[ok], truth[r].time, chainage[r])
+        err_in[r], err_out[r] = e_in, e_out
+        sd[r] = before[r].sd[ok] if before[r].sd is not None else np.ones_like(e_in)
+    gaps = []
+    for r in runs:
+        sel = np.arange(0, len(ch[r]), max(1, len(ch[r]) // 3000))
+        num, den = np.zeros((len(sel), 3)), np.zeros((len(sel), 3))
+        for q in runs:
+            order = np.argsort(ch[q])
+            inside = (ch[r][sel] >= ch[q].min()) & (ch[r][sel] <= ch[q].max())
+            e = np.column_stack([np.interp(ch[r][sel], ch[q][order], err_in[q][order, k]) for k in range(3)])
+            s = np.column_stack([np.interp(ch[r][sel], ch[q][order], sd[q][order, k]) for k in range(3)])
+            w = inside[:, None] / s**2
+            num, den = num + w * e, den + w
+        gaps.append((err_out[r][sel] - num / den)[:, :2])
+    g = np.vstack(gaps)
+    return float(np.sqrt(np.mean(np.sum(g**2, axis=1))))
+
+
+def score(survey_dir: Path, result) -> dict:
+    truth = load_truth(survey_dir.parent / "truth")
+    before = score_trajectories(truth.trajectories, result.trajectories, truth.chainage)
+    after = score_trajectories(truth.trajectories, result.corrected, truth.chainage)
+    pool = lambda s, k: float(np.sqrt(np.mean([v[k] ** 2 for v in s["consistency"].values()])))  # noqa: E731
+    maxi = lambda s, k: float(max(v[k] for v in s["consistency"].values()))  # noqa: E731
+    off = offset_errors(truth.trajectories, result.trajectories, result.offsets)
+    ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t), axis=1) for t in result.ties]
+    ties = np.concatenate(ties) if ties else np.zeros(0)
+    used = sum(o.status == "ok" or bool(o.info.get("resolved")) for o in result.offsets)
+    return {
+        "h_before": pool(before, "rms_h"), "hmax_before": maxi(before, "max_h"),
+        "h_after": pool(after, "rms_h"), "hmax_after": maxi(after, "max_h"), "v_after": pool(after, "rms_v"),
+        "abs_h_after": after["overall"]["rms_h"],
+        "bound_gap": averaging_bound_gap(truth.trajectories, result.trajectories, result.corrected, truth.chainage),
+        "worst_ok": float(max((np.linalg.norm(e) for e in off.values()), default=0.0)),
+        "worst_tie": float(ties.max()) if len(ties) else 0.0, "ties_over_5cm": int((ties > 0.05).sum()),
+        "ties": len(ties), "used_share": used / max(len(result.offsets), 1),
+    }
+
+
+def print_pairs(survey_dir: Path, result) -> None:
+    """One line per tile pair: status (and before resolution), alias shift, margin, true error."""
+    truth = load_truth(survey_dir.parent / "truth")
+    errors = offset_errors(truth.trajectories, result.trajectories, result.offsets)
+    for k, o in enumerate(result.offsets):
+        at = o.info.get("alongtrack", {})
+        err = f"error {np.round(errors[k] * 1000).astype(int).tolist()} mm" if k in errors else ""
+        print(f"    {o.run_b} {o.tile_a:<20} {o.status:<12} shift {at.get('shift_m', 0):+.2f} "
+              f"{o.info.get('resolved', o.info.get('demoted', '')):<10} {err}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenarios", nargs="+", default=["commensurate", "commensurate_fast", "mixed"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--optimizer", default="spline")
+    ap.add_argument("--pipeline", default="global", choices=["global", "multirun"])
+    ap.add_argument("--size", type=float, default=1.0)
+    ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS after | abs h RMS | "
+          "gap to bound | worst ok offset | worst tie | ties > 5 cm | along used | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for scenario in args.scenarios:
+        for seed in args.seeds:
+            survey = survey_for(scenario, seed, args.size)
+            reg = registry()
+            stages = Stages(reg.create("detector", "iss"), reg.create("descriptor", "none"),
+                            reg.create("matcher", "pair_voting"), reg.create("optimizer", args.optimizer),
+                            reg.create("executor", "process"))
+            options = PipelineOptions(mode=args.pipeline, pairs="all" if args.pipeline == "multirun" else "reference")
+            t0 = time.perf_counter()
+            result = run_pipeline(survey, stages, options, progress=lambda *a: None)
+            s = score(survey, result)
+            if args.pairs:
+                print_pairs(survey, result)
+            print(f"| {scenario} | {seed} | {s['h_before']:.3f} / {s['hmax_before']:.2f} -> {s['h_after']:.3f} / "
+                  f"{s['hmax_after']:.3f} | {s['v_after']:.3f} | {s['abs_h_after']:.3f} | {s['bound_gap']:.3f} | "
+                  f"{s['worst_ok']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
+                  f"{s['used_share']:.0%} | {time.perf_counter() - t0:.0f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

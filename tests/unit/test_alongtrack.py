@@ -1,0 +1,103 @@
+"""Joint along-track resolution on a synthetic chain of tile pairs with commensurate aliases."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
+from railtraj.data import Ties, TileOffset, Trajectory
+
+PORTALS = (50.0, 350.0)
+LENGTH = 400.0
+
+
+def _run(run_id: str, speed: float, t0: float, reverse: bool, sd_mid: float) -> Trajectory:
+    t = t0 + np.arange(0, LENGTH / speed, 0.05)
+    s = (t - t0) * speed
+    s = LENGTH - s if reverse else s
+    xyz = np.column_stack([530000 + s, np.full_like(s, 180000.0), np.full_like(s, 10.0)])
+    u = np.clip((s - PORTALS[0]) / (PORTALS[1] - PORTALS[0]), 0, 1)
+    sd = 0.015 + sd_mid * np.outer((4 * u * (1 - u)) ** 1.5, [1.0, 1.0, 0.2])
+    rpy = np.tile([0.0, 0.0, 270.0 if reverse else 90.0], (len(t), 1))
+    return Trajectory(t, xyz, rpy, sd, run_id=run_id)
+
+
+def _true_along(s: np.ndarray) -> np.ndarray:
+    """The runs' along-track offset: smooth, up to 0.6 m, at most ~7 mm/m."""
+    return 0.6 * np.sin(np.pi * np.clip((s - PORTALS[0]) / (PORTALS[1] - PORTALS[0]), 0, 1)) ** 2
+
+
+def _pair(s: float, alias: float, status: str, unique: bool, a: Trajectory, b: Trajectory) -> TileOffset:
+    """A tile pair whose matcher chose the offset ``alias`` metres off the truth, with a fitness
+    profile that repeats every 0.6, 1.5 and 3.0 m (sleepers, ribs, both), and shows the truth a
+    little better when a unique object is in the tile."""
+    axis = np.array([1.0, 0.0, 0.0])
+    d_true = np.array([_true_along(np.array([s]))[0], 0.12, 0.05])
+    d = d_true + alias * axis
+    step = 0.05  # the profile spans the same absolute offsets (the search window) for every pair
+    ts = np.arange(-3.2, 3.2 + step / 2, step) - d[0]
+    true_t = -alias
+    dist = lambda period: np.abs((ts - true_t + period / 2) % period - period / 2)  # noqa: E731
+    peak = lambda x: np.exp(-((x / 0.04) ** 2))  # noqa: E731
+    fitness = 0.55 + 0.15 * peak(dist(0.6)) + 0.2 * peak(dist(1.5)) + 0.05 * peak(dist(3.0))
+    if unique:
+        fitness = fitness + 0.03 * peak(ts - true_t)
+    gradient = np.array([np.gradient(_true_along(np.array([s - 1, s, s + 1])))[1], 0.0, 0.0])
+    ta = a.time[0] + s / 10.0
+    tb = b.time[0] + (LENGTH - s) / 12.0
+    info = {"time_a": ta, "time_b": tb,
+            "alias_profile": {"axis": axis.tolist(), "start": float(ts[0]), "step": step, "fitness": fitness.tolist()},
+            "piecewise": {"axis": axis.tolist(), "gradient": gradient.tolist(), "ref_point": [530000 + s, 180000.0, 10.0],
+                          "fit_cov": np.diag([0.008, 0.003, 0.003]).__pow__(2).tolist()}}
+    ties = Ties.empty("run_a", "run_b") if status != "ok" else Ties(
+        "run_a", "run_b", [ta], [tb], [[530000 + s, 180000.0, 10.0]], [[530000 + s, 180000.0, 10.0] - d], [1.0])
+    cov = np.diag([3.0, 0.005, 0.005]) ** 2 if status == "ambiguous" else np.diag([0.008, 0.003, 0.003]) ** 2
+    return TileOffset("run_a", "run_b", f"{s:.0f}", f"{s:.0f}", d=d, cov=cov, status=status, ties=ties, info=info)
+
+
+def _chain(aliases: dict[int, float], statuses: dict[int, str], sd_mid: float = 0.5, unique_every: int = 3):
+    a, b = _run("run_a", 10.0, 300000.0, False, sd_mid), _run("run_b", 12.0, 300600.0, True, sd_mid)
+    s_pairs = np.arange(60.0, 345.0, 25.0)
+    offsets = [_pair(s, aliases.get(k, 0.0), statuses.get(k, "ambiguous"), k % unique_every == 0, a, b)
+               for k, s in enumerate(s_pairs)]
+    return offsets, {"run_a": a, "run_b": b}, s_pairs
+
+
+def test_aliases_are_resolved_jointly_from_the_portals():
+    aliases = {2: 3.0, 4: -1.5, 5: 0.6, 7: -3.0, 9: 1.5}
+    offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert len(report) == len(offsets)
+    for o, s_k in zip(out, s, strict=True):
+        assert o.status == "ok", (s_k, o.status)
+        assert abs(o.d[0] - _true_along(np.array([s_k]))[0]) < 0.01
+    moved = [o for k, o in enumerate(out) if k in aliases]
+    assert all(o.info["resolved"] in ("joint", "moved") and not len(o.ties) for o in moved)
+
+
+def test_an_ok_pair_on_an_alias_is_never_kept():
+    offsets, trajs, s = _chain({4: 3.0}, statuses={k: "ok" for k in range(12)})
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    o = out[4]
+    err = abs(o.d[0] - _true_along(np.array([s[4]]))[0])
+    assert (o.status == "ok" and err < 0.01) or o.status == "ambiguous"
+    assert o.status != "ok" or not len(o.ties)  # its alias ties are dropped
+
+
+def test_without_an_anchor_nothing_is_claimed():
+    """GNSS poor everywhere (large sd at the portals too) and no unique objects: every alias
+    explains the chain equally well, so no pair may be reported as resolved."""
+    offsets, trajs, _ = _chain({3: 3.0, 6: 1.5}, statuses={0: "ok", 5: "ok"}, unique_every=1000)
+    for r, t in trajs.items():
+        trajs[r] = t.with_positions(t.xyz, np.full_like(t.sd, 5.0))
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert all(o.status == "ambiguous" for o in out)
+    assert all(row["status"] == "ambiguous" for row in report)
+    demoted = [o for o in out if "demoted" in o.info]
+    assert len(demoted) == 2
+
+
+def test_disabled_returns_the_offsets_unchanged():
+    offsets, trajs, _ = _chain({2: 3.0}, statuses={})
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions(enabled=False))
+    assert out == offsets and report == []
