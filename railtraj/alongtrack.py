@@ -10,21 +10,19 @@ aliases apart. A single pair cannot always be sure; the chain of pairs along a r
   pair is predicted to centimetres;
 * near the portals the trajectories' reported sd is small, which anchors the chain at zero.
 
-Per run pair the pairs are ordered along run b's track. Each pair's candidates are the local
-maxima of its along-track fitness profile (the matcher's ``alias_profile``: the share of run b's
-points within 5 cm of run a's when its curve is shifted by t). A min-sum (Viterbi) pass over
-the chain with
+Per run pair the pairs are ordered along run b's track. Each pair's candidates are the prominent
+local maxima of its along-track fitness profile (the matcher's ``alias_profile``: the share of run
+b's points within 5 cm of run a's when its curve is shifted by t). Then, as in bootstrapped GNSS
+ambiguity fixing (Teunissen 1998), a Kalman smoother predicts the offset at every pair from the
+anchors (the trajectories' sd) and the pairs fixed so far, with the measured rates as input. A
+pair is fixed on the candidate nearest the prediction only when that candidate clearly beats the
+runner-up, and an alias one shortest period away, by ``min_period``. The fitness evidence counts
+at most 3 sigma, because the profile is measured about the matcher's own choice. Fixed pairs
+anchor the next round.
 
-* an evidence cost per candidate from its misfit against the best one,
-* a prior cost from the trajectories' sd, and
-* a transition cost on the difference between a candidate and the offset predicted from the
-  previous pair plus the measured rate,
-
-gives the best sequence. A forward-backward pass gives every candidate's min-marginal cost. A
-pair is *resolved* only when its best candidate beats the runner-up by ``min_margin`` (GNSS
-ambiguity fixing's ratio test). Otherwise it stays ``ambiguous`` and is used across the track
-and in height only. This applies to ``ok`` pairs too: a pair the matcher found sure but the chain
-cannot confirm is demoted, never kept on a possible alias.
+What cannot be fixed stays ``ambiguous`` and is used across the track and in height only. This
+applies to ``ok`` pairs too: a pair the matcher found sure but the chain cannot confirm is
+demoted, never kept on a possible alias.
 """
 
 from __future__ import annotations
@@ -46,15 +44,17 @@ class AlongTrackOptions:
 
     enabled: bool = True
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
-    curvature_sd: float = 0.0004    # m/m^2: change of the drift rate along the track
+    curvature_sd: float = 0.0001    # m/m^2: what the mean of two measured rates misses of the drift's bend
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
-    max_excess: float = 25.0        # a pair whose best candidate adds more than this to the chain is inconsistent
+    min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
+    prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
     evidence_ratio: float = 1.25    # a misfit ratio worth 3 sigma of evidence against a candidate
     max_evidence: float = 9.0       # ... and no candidate is charged more than that (3 sigma)
     min_fitness: float = 0.5        # pairs whose profile never reaches this give no evidence
-    min_prominence: float = 0.02    # a candidate's fitness stands this far above the dips beside it
+    min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
-    max_candidates: int = 15
+    max_candidates: int = 40
+    max_pair_sd: float = 0.03       # m: a pair whose own along-track fit is vaguer is never fixed
 
 
 @dataclass
@@ -105,7 +105,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 travelled: dict[str, np.ndarray], options: AlongTrackOptions) -> Pair | None:
     """The pair's alias candidates, or None if it has no along-track fit to choose from."""
     pw, prof = o.info.get("piecewise"), o.info.get("alias_profile")
-    if o.status not in ("ok", "ambiguous") or not pw or not prof or "fit_cov" not in pw:
+    if o.status not in ("ok", "ambiguous", "degenerate") or not pw or not prof or "fit_cov" not in pw:
         return None
     times = (o.info.get("time_a", np.nan), o.info.get("time_b", np.nan))
     if not np.isfinite(times).all() or o.run_b not in trajectories or o.run_a not in trajectories:
@@ -115,9 +115,14 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         return None  # the pair's clouds hardly meet at any shift: no along-track evidence
     ts = prof["start"] + prof["step"] * np.arange(len(fitness))
     misfit = np.maximum(1.0 - fitness, 1e-3)
-    # candidates are the prominent peaks only: a profile's noise is no alias
-    peaks, _ = find_peaks(np.concatenate([[0.0], fitness, [0.0]]), prominence=options.min_prominence)
-    peaks = peaks - 1
+    # candidates are the significant peaks only: a profile's noise is no alias. A peak stands
+    # out when it rises above the higher dip beside it by min_significance counting sd (the
+    # fitness is a share of the profile's points: binomial noise)
+    peaks, props = find_peaks(fitness, prominence=0.0)  # (a peak on the window's edge is no peak)
+    n_points = float(prof.get("points", 2000))
+    dip = np.maximum(1.0 - (fitness[peaks] - props["prominences"]), 0.0)
+    noise = np.sqrt((misfit[peaks] + dip) / n_points)
+    peaks = peaks[props["prominences"] >= options.min_significance * noise]
     peaks = peaks[misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()] if len(peaks) else peaks
     if not len(peaks):
         return None  # no peak stands out: the pair says nothing along the track
@@ -153,61 +158,82 @@ def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
 
 
 def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[float, float, str]]:
-    """Per pair: the chosen shift, its margin over the runner-up and a verdict (``resolved``,
-    ``ambiguous``: the margin is too small, ``inconsistent``: none of its candidates fits the
-    chain; such a pair is taken out, the worst first, and the rest solved again)."""
-    active = list(range(len(chain)))
-    verdicts: dict[int, tuple[float, float, str]] = {}
-    while active:
-        sub = [chain[i] for i in active]
-        marginals, without = _min_marginals(sub, options)
-        excess = np.array([m.min() - w for m, w in zip(marginals, without, strict=True)])
-        worst = int(np.argmax(excess))
-        if excess[worst] > options.max_excess:
-            verdicts[active.pop(worst)] = (0.0, 0.0, "inconsistent")
-            continue
-        for i, cost in zip(active, marginals, strict=True):
-            order = np.argsort(cost)
-            margin = float(cost[order[1]] - cost[order[0]]) if len(cost) > 1 else np.inf
-            verdicts[i] = (float(chain[i].shift[order[0]]), margin,
-                           "resolved" if margin >= options.min_margin else "ambiguous")
-        break
-    return [verdicts[i] for i in range(len(chain))]
+    """Bootstrapped fixing along one run pair, as in GNSS integer ambiguity resolution.
 
+    The along-track offset is predicted at every pair (mean and sd) by a Kalman smoother. It runs
+    over the chain with the measured rates as input, anchored by the trajectories' sd and by the
+    pairs fixed so far. A pair is fixed on the candidate nearest its prediction when
 
-def _transition(p: Pair, q: Pair, options: AlongTrackOptions) -> np.ndarray:
-    """(k_p, k_q) cost of going from each candidate of ``p`` to each of ``q``: the offset
-    predicted from ``p`` with the measured rate, against ``q``'s candidates."""
-    ds = q.s - p.s
-    predicted = p.u[:, None] + 0.5 * (p.rate + q.rate) * ds
-    var = (options.rate_sd * ds) ** 2 + (0.5 * options.curvature_sd * ds**2) ** 2 + p.sd**2 + q.sd**2
-    return (q.u[None, :] - predicted) ** 2 / var
+    * the pair's own along-track sd is at most ``max_pair_sd``,
+    * that candidate is within ``3 sd`` of the prediction, and
+    * the runner-up, or an alias one ``min_period`` away if the pair shows no other candidate,
+      costs at least ``min_margin`` more (prediction misfit plus the capped fitness evidence).
 
-
-def _min_marginals(chain: list[Pair], options: AlongTrackOptions) -> tuple[list[np.ndarray], np.ndarray]:
-    """Min-sum forward-backward over the chain: per pair, the least total cost of a sequence
-    through each of its candidates, and the least cost of the chain without that pair."""
-    unary = [p.evidence + p.u**2 / p.prior_var for p in chain]
-    trans = [_transition(p, q, options) for p, q in zip(chain[:-1], chain[1:], strict=True)]
-    fwd = [unary[0]]
-    for k in range(1, len(chain)):
-        fwd.append(unary[k] + (fwd[-1][:, None] + trans[k - 1]).min(axis=0))
-    bwd = [np.zeros(len(chain[-1].u))]
-    for k in range(len(chain) - 2, -1, -1):
-        bwd.insert(0, (trans[k] + (unary[k + 1] + bwd[0])[None, :]).min(axis=1))
+    Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
+    chosen shift, its margin and ``resolved`` or ``ambiguous``.
+    """
     n = len(chain)
-    without = np.zeros(n)
-    for k in range(n):  # a pair left out: its neighbours joined directly
-        if n == 1:
-            without[k] = 0.0
-        elif k == 0:
-            without[k] = float((unary[1] + bwd[1]).min())
-        elif k == n - 1:
-            without[k] = float(fwd[n - 2].min())
+    fixed = np.full(n, np.nan)  # along offset of the fixed candidate
+    result: list[tuple[float, float, str]] = [(0.0, 0.0, "ambiguous")] * n
+    while True:
+        mu, var = _smooth(chain, fixed, options)
+        newly = []
+        for i, p in enumerate(chain):
+            if np.isfinite(fixed[i]):
+                continue
+            total = var[i] + p.sd**2
+            cost = (p.u - mu[i]) ** 2 / total + p.evidence
+            order = np.argsort(cost)
+            best = int(order[0])
+            runner_up = cost[order[1]] if len(cost) > 1 else np.inf
+            # an alias one shortest period away may exist although the profile showed no peak
+            # there: it would misfit by more than max_misfit_ratio, worth max_evidence
+            unseen = max(options.min_period - abs(p.u[best] - mu[i]), 0.0) ** 2 / total + options.max_evidence
+            margin = float(min(runner_up, unseen) - cost[best])
+            near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
+            result[i] = (float(p.shift[best]), margin, "ambiguous")
+            if near and margin >= options.min_margin:
+                newly.append((i, best, margin))
+        if not newly:
+            return result
+        for i, best, margin in newly:
+            fixed[i] = chain[i].u[best]
+            result[i] = (float(chain[i].shift[best]), margin, "resolved")
+
+
+def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother):
+    the offset drifts with the pairs' measured rate, is observed as 0 +- the trajectories' sd at
+    every pair and as its fixed candidate at fixed pairs."""
+    n = len(chain)
+    xf, pf = np.zeros(n), np.zeros(n)  # filtered
+    xp, pp = np.zeros(n), np.zeros(n)  # predicted
+    q = np.zeros(n)
+    for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
+        if i == 0:
+            xp[i], pp[i] = 0.0, 1e6
         else:
-            skip = _transition(chain[k - 1], chain[k + 1], options)
-            without[k] = float((fwd[k - 1][:, None] + skip + (unary[k + 1] + bwd[k + 1])[None, :]).min())
-    return [f + b for f, b in zip(fwd, bwd, strict=True)], without
+            ds = p.s - chain[i - 1].s
+            # two rates that disagree (a poorly fitted pair) widen the prediction by their difference
+            q[i] = ((options.rate_sd * ds) ** 2 + (0.5 * options.curvature_sd * ds**2) ** 2
+                    + (0.5 * (p.rate - chain[i - 1].rate) * ds) ** 2)
+            xp[i] = xf[i - 1] + 0.5 * (p.rate + chain[i - 1].rate) * ds
+            pp[i] = pf[i - 1] + q[i]
+        x, v = xp[i], pp[i]
+        # the smoother's error is one error over prior_correlation metres: count it once there
+        gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)
+        inflate = max(1.0, options.prior_correlation / max(gap, 1.0)) if np.isfinite(gap) else 1.0
+        for z, r in ((0.0, p.prior_var * inflate), (fixed[i], p.sd**2)):
+            if np.isfinite(z):
+                k = v / (v + r)
+                x, v = x + k * (z - x), (1 - k) * v
+        xf[i], pf[i] = x, v
+    xs, ps = xf.copy(), pf.copy()
+    for i in range(n - 2, -1, -1):
+        g = pf[i] / pp[i + 1]
+        xs[i] = xf[i] + g * (xs[i + 1] - xp[i + 1])
+        ps[i] = pf[i] + g**2 * (ps[i + 1] - pp[i + 1])
+    return xs, ps
 
 
 def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, Trajectory]) -> TileOffset:
@@ -219,7 +245,8 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
         if o.status == "ok":
             info["demoted"] = "along-track alias not resolved jointly"
         window = float(o.info.get("search_window", 3.0))
-        return replace(o, status="ambiguous", cov=fit_cov + window**2 * np.outer(axis, axis),
+        return replace(o, status="ambiguous" if o.status == "ok" else o.status,
+                       cov=fit_cov + window**2 * np.outer(axis, axis),
                        ties=Ties.empty(o.run_a, o.run_b), info=info)
     if abs(shift) < 1e-9 and o.status == "ok":
         return replace(o, info=info)

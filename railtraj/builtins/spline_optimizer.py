@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 
 #: statuses whose offset is reliable across the track and in height, though not along it
 WEAK_STATUSES = ("degenerate", "ambiguous")
+#: along-track sd given to degenerate/ambiguous pairs, so that the track direction is dropped
+WEAK_ALONG_SD_M = 100.0
 #: at most this many rejected observations are listed individually in the diagnostics
 MAX_LISTED = 200
 
@@ -118,7 +120,7 @@ class SplineOptimizer:
     def _offsets(self, model: CorrectionModel, offsets: Sequence[TileOffset],
                  trajectories: dict[str, Trajectory]) -> obs.Block | None:
         cfg = self.config
-        use = [o for o in offsets if cfg.use_weak_offsets and _usable_weak(o, trajectories)]
+        use = [o for o in offsets if (cfg.use_weak_offsets or o.ok) and _usable_offset(o, trajectories)]
         if not use:
             return None
         ka, wa, kb, wb = [], [], [], []
@@ -129,6 +131,12 @@ class SplineOptimizer:
         knots = np.hstack([np.vstack(ka), np.vstack(kb)])
         w = np.hstack([-np.vstack(wa), np.vstack(wb)])
         cov = np.stack([o.cov for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
+        for k, o in enumerate(use):  # a weak pair says nothing along the track, whatever its sd there
+            if not o.ok:
+                axis = _track_axis(o)
+                cov[k] += WEAK_ALONG_SD_M**2 * np.outer(axis, axis)
+        # ok pairs with ties enter through their ties; an ok pair without (resolved jointly along
+        # the track) enters here in full, a weak pair in its constrained directions only
         labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
         labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
         return obs.assemble("offset", model.n_unknowns, knots, w, np.stack([o.d for o in use]),
@@ -159,8 +167,8 @@ class SplineOptimizer:
         times = [blk.labels[t][blk.labels[r] == run_id] for blk in data
                  for r, t in (("run_id", "time"), ("run_a", "time_a"), ("run_b", "time_b")) if r in blk.labels]
         seen = np.sort(rk.param_at(np.concatenate(times).astype(float))) if times else np.zeros(0)
-        ends = np.concatenate([[-np.inf], seen, [np.inf]])
         param = rk.epoch_param
+        ends = np.concatenate([[param[0]], seen, [param[-1]]])
         gap = np.searchsorted(seen, param)
         lo, hi = ends[gap], ends[gap + 1]
         sd = traj.sd.max(axis=1) if traj.sd is not None else np.full(len(param), cfg.default_sd_m)
@@ -207,9 +215,19 @@ def _evaluate(model: CorrectionModel, run_id: str, times: np.ndarray, sol, cov_b
     return corr, np.sqrt(np.maximum(var, 0.0))
 
 
-def _usable_weak(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
-    """A degenerate/ambiguous pair with a finite offset, covariance and observation times."""
-    if o.status not in WEAK_STATUSES or o.run_a not in trajectories or o.run_b not in trajectories:
+def _track_axis(o: TileOffset) -> np.ndarray:
+    """The pair's track direction: from its curve of offsets, else its least constrained direction."""
+    axis = o.info.get("piecewise", {}).get("axis")
+    if axis is not None:
+        return np.asarray(axis, float)
+    return np.linalg.eigh(o.cov)[1][:, -1]
+
+
+def _usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
+    """A degenerate/ambiguous pair, or an ok pair without ties, with a finite offset, covariance
+    and observation times."""
+    usable = o.status in WEAK_STATUSES or (o.ok and (o.ties is None or not len(o.ties)))
+    if not usable or o.run_a not in trajectories or o.run_b not in trajectories:
         return False
     times = [o.info.get("time_a", np.nan), o.info.get("time_b", np.nan)]
     return bool(np.isfinite(o.d).all() and np.isfinite(o.cov).all() and np.isfinite(times).all())

@@ -302,7 +302,8 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
     lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
     ts = radius * np.arange(np.floor(lo / radius) - 1, np.ceil(hi / radius) + 2)
     coarse = alias_profile(target, moved, np.zeros(3), fit.axis, ts, radius=radius)
-    profile = {"axis": fit.axis.tolist(), "start": float(ts[0]), "step": radius, "fitness": coarse.tolist()}
+    profile = {"axis": fit.axis.tolist(), "start": float(ts[0]), "step": radius, "fitness": coarse.tolist(),
+               "points": len(pts)}
     rivals = profile_rivals(ts, coarse, exclude, lo, hi)
     if len(rivals) == 0:
         return 0.0, 0.0, profile
