@@ -137,7 +137,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     u = (o.d @ direction) + shift * (axis @ direction)
     cov = np.asarray(pw["fit_cov"], float)
     sd_a, sd_b = trajectories[o.run_a].sd_at(np.array([times[0]])), traj_b.sd_at(np.array([times[1]]))
-    prior_var = float(((sd_a[0] ** 2 + sd_b[0] ** 2) @ direction**2)) if sd_a is not None and sd_b is not None else 1e4
+    prior_var = float((sd_a[0] ** 2 + sd_b[0] ** 2) @ direction**2) if sd_a is not None and sd_b is not None else 1e4
     # the profile is measured about the matcher's curve, fitted at its own choice, so it favours
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)

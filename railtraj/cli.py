@@ -48,6 +48,7 @@ def build_stages(cfg: DictConfig):
 
 def run_job(cfg: DictConfig, out_dir: Path) -> None:
     """Run one configured job and write its outputs to ``out_dir``."""
+    from railtraj.alongtrack import AlongTrackOptions
     from railtraj.export import write_outputs
     from railtraj.io.atomic import atomic_write
     from railtraj.pipeline import PipelineOptions, run_pipeline
@@ -68,7 +69,8 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     grid_dir = to_absolute_path(grid_dir) if grid_dir else None
     options = PipelineOptions(mode=pipe.name, pairs=pipe.pairs, reference_run=pipe.reference_run,
                               tile=pipe.tile, max_pairs=pipe.max_pairs, min_overlap_m=pipe.min_overlap_m,
-                              max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir)
+                              max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir,
+                              alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)))
     stages = build_stages(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_write(out_dir / "config.yaml") as fh:

@@ -15,6 +15,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from railtraj.alongtrack import AlongTrackOptions
 from railtraj.plugins import registry
 
 
@@ -34,9 +35,10 @@ class PipelineConfig:
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
+    alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
 
 
-LOCAL = PipelineConfig(name="local", pairs="all")
+LOCAL = PipelineConfig(name="local", pairs="all", alongtrack=AlongTrackOptions(enabled=False))
 GLOBAL = PipelineConfig(name="global", pairs="reference")
 MULTIRUN = PipelineConfig(name="multirun", pairs="all")
 
@@ -67,7 +69,7 @@ DEFAULTS: list[Any] = [
     {"detector": "iss"},            # ISS keypoints (thesis' detector)
     {"descriptor": "none"},         # descriptors do not separate repetitive tunnel geometry
     {"matcher": "pair_voting"},     # translation voting + dense check + refinement
-    {"optimizer": "gtsam"},         # smooth per-run corrections fitted to the ties (GTSAM)
+    {"optimizer": "spline"},        # continuous per-run corrections, one robust sparse solve
     {"executor": "serial"},         # Open3D already uses every core inside a tile
     {"pipeline": "global"},
     "_self_",

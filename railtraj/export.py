@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from railtraj.control import control_residuals
 from railtraj.data import Trajectory
 from railtraj.errors import CRSError
 from railtraj.io.outputs import write_anchors_csv, write_json, write_offsets_csv, write_ties_csv
@@ -72,7 +73,7 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
         write_trajectory_csv(out_dir / "trajectories" / f"{run_id}.csv", traj)
     write_offsets_csv(out_dir / "offsets.csv", result.offsets)
     write_ties_csv(out_dir / "ties.csv", result.ties)
-    notes: list[str] = []
+    notes: list[str] = list(result.notes)
     anchor_count = _write_anchors(result, out_dir, anchors, notes)
     if write_tiles:
         from railtraj.retile import write_corrected_tiles
@@ -132,6 +133,8 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         "seconds": {**{k: round(v, 3) for k, v in seconds.items()},
                     "per_stage_total": {k: round(v, 3) for k, v in stage_seconds.items()}},
         "qc": qc_figures(result),
+        "adjustment": result.adjustment,
+        "control": control_residuals(result.control, result.trajectories, result.corrected),
         "notes": notes,
     }
     if truth_dir is not None and truth_dir.exists():

@@ -10,16 +10,19 @@ Stages arrive already built (see :mod:`railtraj.cli`): nothing here knows about 
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.consistency import check_survey
-from railtraj.data import Keypoints, PointTile, Ties, TileOffset, Trajectory
+from railtraj.control import observe_control
+from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileOffset, Trajectory
 from railtraj.errors import ConfigError
 from railtraj.georef import regeoreference_points
 from railtraj.io.las import read_tile
@@ -56,6 +59,7 @@ class PipelineOptions:
     max_misalignment_m: float = 3.0
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
+    alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
 
 
 @dataclass
@@ -77,6 +81,9 @@ class PipelineResult:
     pairs: list[PairResult]
     ties: list[Ties]
     seconds: dict[str, float]
+    control: ControlObservations = field(default_factory=ControlObservations.empty)
+    adjustment: dict[str, Any] = field(default_factory=dict)  # the optimizer's diagnostics
+    notes: list[str] = field(default_factory=list)  # warnings a surveyor must see in metrics/report
 
     @property
     def offsets(self) -> list[TileOffset]:
@@ -109,14 +116,47 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
              stages, options) for pair in pairs]
     results = stages.executor.map(match_pair, jobs, progress=progress or _log_progress("matched", "tile pairs"))
     clock["match"] = time.perf_counter() - t0
+    log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in results), len(results))
+
+    t0 = time.perf_counter()
+    resolved, alongtrack = resolve_along_track([r.offset for r in results], trajectories, options.alongtrack)
+    results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
-    log.info("%d of %d tile pairs matched reliably", len(ok), len(results))
+    clock["alongtrack"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    control, notes = observe_control(survey, trajectories)
+    clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
-    corrected = stages.optimizer.optimize(trajectories, ties, [r.offset for r in results])
+    corrected, adjustment = optimize(stages.optimizer, trajectories, ties, [r.offset for r in results], control, notes)
     clock["optimize"] = time.perf_counter() - t0
-    return PipelineResult(survey, options, trajectories, corrected, results, ties, clock)
+    adjustment["alongtrack"] = alongtrack
+    return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes)
+
+
+def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],
+             control: ControlObservations, notes: list[str]) -> tuple[dict[str, Trajectory], dict[str, Any]]:
+    """Run the optimizer; control goes to optimizers that take it, or a warning says it was not used."""
+    kwargs = {}
+    if len(control):
+        if "control" in inspect.signature(optimizer.optimize).parameters:
+            kwargs["control"] = control
+        else:
+            note = (f"{len(control)} control observations were not used: optimizer "
+                    f"{type(optimizer).__name__} does not take control points (use optimizer=spline)")
+            log.warning(note)
+            notes.append(note)
+    corrected = optimizer.optimize(trajectories, ties, offsets, **kwargs)
+    adjustment = dict(getattr(optimizer, "diagnostics", None) or {})
+    notes += adjustment.get("notes", [])
+    if all(corrected[r] is trajectories[r] for r in trajectories):
+        note = "the optimizer left every trajectory unchanged"
+        if note not in " ".join(notes):
+            log.warning(note)
+            notes.append(note)
+    return corrected, adjustment
 
 
 def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:

@@ -48,6 +48,10 @@ class Optimizer(Protocol):
     """Corrects the runs' trajectories so that the matched features agree.
 
     Returns one trajectory per run with the same epochs; ``sd`` holds the posterior 1-sigma.
+    An optimizer that uses control points takes a keyword argument ``control``
+    (:class:`ControlObservations`); the pipeline passes it only then, and otherwise warns that the
+    survey's control was not used. After ``optimize`` an optional ``diagnostics`` dict (counts,
+    rejected observations, ``notes``) is written to metrics.json and the report.
     """
 
     def optimize(self, trajectories: dict[str, Trajectory], ties: Sequence[Ties],

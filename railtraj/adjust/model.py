@@ -38,6 +38,7 @@ class RunKnots:
     epoch_param: np.ndarray  # parameter at each trajectory epoch (non-decreasing)
     epoch_time: np.ndarray
     knot_time: np.ndarray  # gps_time at each knot
+    knot_distance: np.ndarray  # metres travelled at each knot
 
     @property
     def count(self) -> int:
@@ -60,15 +61,13 @@ class CorrectionModel:
         first = 0
         for run_id in sorted(trajectories):
             traj = trajectories[run_id]
-            if unit == "m":
-                step = np.linalg.norm(np.diff(traj.xyz, axis=0), axis=1)
-                param = np.concatenate([[0.0], np.cumsum(step)])
-            else:
-                param = traj.time - traj.time[0]
+            distance = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz, axis=0), axis=1))])
+            param = distance if unit == "m" else traj.time - traj.time[0]
             n = max(2, int(np.ceil(param[-1] / self.spacing)) + 1)
             knot_param = self.spacing * np.arange(n)
             knot_time = _invert(knot_param, param, traj.time)
-            self.runs[run_id] = RunKnots(first, self.spacing, param, traj.time, knot_time)
+            knot_distance = np.interp(knot_time, traj.time, distance)
+            self.runs[run_id] = RunKnots(first, self.spacing, param, traj.time, knot_time, knot_distance)
             first += n
         self.n_knots = first
 
@@ -84,9 +83,9 @@ class CorrectionModel:
         f = np.clip(u - k, 0.0, 1.0)
         return rk.first + np.column_stack([k, k + 1]), np.column_stack([1.0 - f, f])
 
-    def knot_seconds(self, run_id: str) -> np.ndarray:
-        """Time between consecutive knots of a run (n_knots - 1,), at least 1 ms."""
-        return np.maximum(np.diff(self.runs[run_id].knot_time), 1e-3)
+    def knot_metres(self, run_id: str, floor: float = 0.5) -> np.ndarray:
+        """Distance travelled between consecutive knots of a run (n_knots - 1,), at least ``floor``."""
+        return np.maximum(np.diff(self.runs[run_id].knot_distance), floor)
 
     def run_of_knot(self) -> np.ndarray:
         """Run index (in sorted order) of every knot."""

@@ -7,7 +7,7 @@ observation at a time, and stacked into a :class:`Block` per kind:
 
 * ``prior``: ``c_r(knot) = 0`` with the trajectory's reported sd (pinned where GNSS was good);
 * ``smoothness``: second differences of consecutive knots ``= 0`` (changes of drift rate, not
-  the drift itself, are penalised), sd from an INS error model (see :func:`smoothness`);
+  the drift itself, are penalised), sd from a drift model (see :func:`smoothness`);
 * ``tie``: ``c_b(t_b) - c_a(t_a) = x_a - x_b`` (a feature seen by two runs);
 * ``offset``: a weak tile pair ``c_b(t_b) - c_a(t_a) = d`` in its constrained directions only;
 * ``control``: ``c_r(t) = X - seen`` (a surveyed point seen in a run's cloud).
@@ -101,21 +101,22 @@ def prior(model: CorrectionModel, run_id: str, sd_at_knots: np.ndarray) -> Block
                     isotropic(sd_at_knots), robust=False)
 
 
-def smoothness(model: CorrectionModel, run_id: str, accel_sd: float) -> Block:
+def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float) -> Block:
     """Second differences of consecutive knots ``= 0``.
 
-    The INS error's acceleration is modelled as white noise of density ``accel_sd`` (m/s^1.5):
-    over knots ``dt`` seconds apart a second difference then has sd ``accel_sd * dt^1.5``. A
-    constant drift rate costs nothing; a change of rate is what is penalised.
+    The drift's bend along the track is modelled as white noise of density ``curvature_sd``
+    (m/m^1.5): over knots ``h`` metres apart a second difference has sd ``curvature_sd * h^1.5``.
+    A constant drift rate costs nothing; a change of rate is what is penalised. Per metre, not per
+    second: a tunnel's drift grows from portal to portal over the tunnel's length whatever the
+    speed (a smoother ties both ends), so a fast run's drift bends no faster along the track.
     """
     rk = model.runs[run_id]
     if rk.count < 3:
         return assemble("smoothness", model.n_unknowns, np.zeros((0, 3), np.int64), np.zeros((0, 3)),
                         np.zeros((0, 3)), np.zeros((0, 3, 3)), robust=False)
     k = rk.first + np.arange(rk.count - 2)
-    dt = model.knot_seconds(run_id)
-    span = 0.5 * (dt[:-1] + dt[1:])
-    sd = np.maximum(accel_sd * span ** 1.5, 1e-6)
+    h = model.knot_metres(run_id)
+    sd = np.maximum(curvature_sd * (0.5 * (h[:-1] + h[1:])) ** 1.5, 1e-6)
     n = len(k)
     return assemble("smoothness", model.n_unknowns, np.column_stack([k, k + 1, k + 2]),
                     np.tile([1.0, -2.0, 1.0], (n, 1)), np.zeros((n, 3)), isotropic(sd), robust=False)

@@ -45,7 +45,7 @@ class BandedSystem:
     def __init__(self, N: sp.spmatrix, min_block: int = 12, perm: np.ndarray | None = None) -> None:
         N = sp.csr_matrix(N)
         self.n = N.shape[0]
-        if perm is None:  # the pattern does not change with the robust weights: reuse the ordering
+        if perm is None:
             perm = reverse_cuthill_mckee(N, symmetric_mode=True).astype(np.int64)
         self.perm = perm
         self.inv = np.empty_like(self.perm)
@@ -166,13 +166,14 @@ def _gram_cache(A1: sp.csr_matrix) -> tuple:
     row = np.repeat(np.arange(n), counts)
     cols[row, slot], vals[row, slot] = A1.indices, A1.data
     a, b = np.triu_indices(m)  # the upper triangle: A1^T A1 is symmetric
-    j, l = cols[:, a].ravel(), cols[:, b].ravel()
+    row_k, col_k = cols[:, a].ravel(), cols[:, b].ravel()
     products = (vals[:, a] * vals[:, b] * np.where(a == b, 1.0, 2.0)).ravel()
     obs_of = np.repeat(np.arange(n), len(a))
     keep = products != 0
-    j, l, products, obs_of = np.minimum(j, l)[keep], np.maximum(j, l)[keep], products[keep], obs_of[keep]
+    lo, hi = np.minimum(row_k, col_k)[keep], np.maximum(row_k, col_k)[keep]
+    products, obs_of = products[keep], obs_of[keep]
     K = A1.shape[1]
-    uniq, pos = np.unique(j * K + l, return_inverse=True)
+    uniq, pos = np.unique(lo * K + hi, return_inverse=True)
     pattern = sp.csr_matrix((np.ones(len(uniq)), (uniq // K, uniq % K)), shape=(K, K))
     pattern.sort_indices()
     # csr_matrix from sorted unique (row, col) pairs keeps their order: data index == position in uniq
@@ -196,11 +197,12 @@ def solve(blocks: list[Block], n: int, confidence: float = 0.999, max_iterations
     robust = [b.robust and len(b) > 0 for b in blocks]
     bound = [chi2.ppf(confidence, np.maximum(b.dof, 1)) for b in blocks]
     gnc = [np.ones(len(b)) for b in blocks]
-    mu, it = None, 0
+    mu, it, perm = None, 0, None
     normal = NormalEquations(blocks, n)
     while True:
         N, rhs = normal.build(gnc)
-        system = BandedSystem(N, perm=None if it == 0 else system.perm)
+        system = BandedSystem(N, perm=perm)
+        perm = system.perm  # the pattern does not change with the weights: order once
         x = system.solve(rhs)
         r2 = [squared_residuals(b, x) if len(b) else np.zeros(0) for b in blocks]
         if not any(robust) or it >= max_iterations:
@@ -213,7 +215,7 @@ def solve(blocks: list[Block], n: int, confidence: float = 0.999, max_iterations
         else:
             mu *= mu_step
         changed = 0.0
-        for k, blk in enumerate(blocks):
+        for k in range(len(blocks)):
             if robust[k]:
                 new = _tls_weight(r2[k], bound[k], mu)
                 changed = max(changed, float(np.abs(new - gnc[k]).max()))

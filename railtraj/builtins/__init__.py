@@ -6,6 +6,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "railtraj.builtins.identity",
     "railtraj.builtins.gtsam_optimizer",
     "railtraj.builtins.spline_optimizer",
+    "railtraj.builtins.median_optimizer",
     "railtraj.builtins.iss",
     "railtraj.builtins.harris3d",
     "railtraj.builtins.fpfh",

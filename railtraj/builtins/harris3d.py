@@ -26,6 +26,7 @@ from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.keypoints import from_voxels
 from railtraj.matching.neighbours import neighbour_max, pair_neighbourhoods, smallest_eigen
+from railtraj.matching.spacing import radius_scale
 from railtraj.matching.voxel import block_covariance, neighbour_sums, voxelize
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,7 @@ class Harris3dDetector:
         self.min_points, self.max_keypoints = min_points, max_keypoints
 
     def detect(self, tile: PointTile) -> Keypoints:
-        grid = voxelize(tile.xyz, self.voxel_size)
+        grid = voxelize(tile.xyz, self.voxel_size * radius_scale(tile)[0])  # follow the profile gap
         count, _, cov = block_covariance(tile.xyz, grid)
         _, normal = smallest_eigen(cov)
         valid = count >= self.min_points

@@ -26,6 +26,7 @@ from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.keypoints import from_voxels
 from railtraj.matching.neighbours import local_covariance
+from railtraj.matching.spacing import radius_scale
 from railtraj.matching.voxel import voxelize
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,8 @@ class IssDetector:
     def detect(self, tile: PointTile) -> Keypoints:
         from railtraj.o3d import o3d
 
-        grid = voxelize(tile.xyz, self.voxel_size)
+        # a voxel finer than the gap between scan profiles leaves empty rows along the track
+        grid = voxelize(tile.xyz, self.voxel_size * radius_scale(tile)[0] if self.voxel_size > 0 else 0.0)
         if len(grid) < self.min_neighbors:
             return Keypoints(np.zeros((0, 3)), np.zeros(0))
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(grid.xyz))

@@ -14,7 +14,7 @@ eigen-decomposition. Statuses: few_keypoints, no_overlap, no_consensus, ambiguou
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.consensus import boxes_overlap, failed
 from railtraj.matching.resolve import VoteSettings, resolve
+from railtraj.matching.spacing import radius_scale
 from railtraj.matching.voting import pair_translations
 
 
@@ -102,7 +103,13 @@ class VotingMatcher:
                info: dict, t0: float) -> TileOffset:
         """Resolve the votes (dense check, refinement) and record the matcher's total time."""
         refiner = self.icp.match if self.icp is not None else None
-        out = resolve(tile_a, kp_a, tile_b, kp_b, votes, self.settings, refiner, info)
+        scale, info["profile_spacing"] = radius_scale(tile_a, tile_b)
+        s = self.settings
+        if scale > 1.0:  # sparser scan profiles than the defaults were set for: radii follow them
+            s = replace(s, fitness_radius=s.fitness_radius * scale, target_voxel=s.target_voxel * scale,
+                        inlier_radius=s.inlier_radius * scale)
+            info["radius_scale"] = scale
+        out = resolve(tile_a, kp_a, tile_b, kp_b, votes, s, refiner, info)
         out.info["timings"]["total"] = time.perf_counter() - t0
         return out
 

@@ -46,7 +46,7 @@ class SplineConfig:
     name: str = "spline"
     knot_spacing: float = 5.0          # distance between correction knots (knot_unit)
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
-    drift_accel_sd: float = 0.2        # INS model: white-noise density of the drift's acceleration, m/s^1.5
+    drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
     tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
     offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
     max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
@@ -100,7 +100,7 @@ class SplineOptimizer:
         sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
         # the smoother's error is correlated: one knot of prior per correlation length, not per knot
         sd = sd * np.sqrt(max(cfg.prior_correlation / cfg.knot_spacing, 1.0))
-        return [obs.prior(model, run_id, sd), obs.smoothness(model, run_id, cfg.drift_accel_sd)]
+        return [obs.prior(model, run_id, sd), obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]
@@ -148,7 +148,7 @@ class SplineOptimizer:
             return None
         keep = np.isin(control.run_id, list(trajectories))
         c = control
-        k, w = [], []
+        k = []
         for r in np.unique(c.run_id[keep]):
             m = keep & (c.run_id == r)
             kr, wr = model.weights(str(r), c.time[m])

@@ -115,7 +115,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     def fit_from(start: np.ndarray):
         inside = target.inside(tile_b.xyz + start, 0.3)
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
-                            chosen.fit.information, tree, min_windows=s.min_windows)
+                            chosen.fit.information, tree, min_windows=s.min_windows, tau=s.fitness_radius)
         if fit is None:
             return None, inside, 0.0, 0.0
         rival, shift, info["alias_profile"] = alias_ratio(target, tile_b.xyz[inside], fit, votes.center,

@@ -47,15 +47,23 @@ def _plots(result) -> list[tuple[str, str]]:
         ax.legend(ncol=3, fontsize=7)
         ax.grid(alpha=0.3)
         out.append(("Tile-pair offsets (hollow: degenerate, ambiguous or refused)", _figure_to_img(fig)))
-    fig, ax = plt.subplots(figsize=(8, 3))
-    for run_id, traj in sorted(result.trajectories.items()):
-        corr = result.corrected[run_id].xyz - traj.xyz
-        ax.plot(traj.time - traj.time[0], np.linalg.norm(corr, axis=1), label=run_id)
-    ax.set_xlabel("time since run start [s]")
-    ax.set_ylabel("|correction| [m]")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    out.append(("Correction applied to each run", _figure_to_img(fig)))
+    runs = sorted(result.trajectories)
+    fig, axes = plt.subplots(len(runs), 1, figsize=(8, 2.2 * len(runs)), sharex=False, squeeze=False)
+    for ax, run_id in zip(axes[:, 0], runs, strict=True):
+        traj, corr_traj = result.trajectories[run_id], result.corrected[run_id]
+        t = traj.time - traj.time[0]
+        corr = corr_traj.xyz - traj.xyz
+        sd = corr_traj.sd if corr_traj.sd is not None else np.zeros_like(corr)
+        for k, (lab, col) in enumerate(zip("ENU", ("C0", "C1", "C2"), strict=True)):
+            ax.plot(t, corr[:, k], color=col, lw=1, label=lab)
+            ax.fill_between(t, corr[:, k] - sd[:, k], corr[:, k] + sd[:, k], color=col, alpha=0.2, lw=0)
+        ax.set_title(run_id, fontsize=9)
+        ax.set_ylabel("correction [m]")
+        ax.grid(alpha=0.3)
+        ax.legend(ncol=3, fontsize=7)
+    axes[-1, 0].set_xlabel("time since run start [s]")
+    fig.tight_layout()
+    out.append(("Correction applied to each run (band: posterior 1-sigma)", _figure_to_img(fig)))
     return out
 
 
@@ -73,6 +81,24 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _adjustment_section(metrics: dict[str, Any]) -> str:
+    """What the optimizer used and rejected, where it was unconstrained, control residuals."""
+    adj, control = metrics.get("adjustment") or {}, metrics.get("control") or []
+    parts = []
+    if adj.get("observations"):
+        rows = [{"observations": k, **v} for k, v in adj["observations"].items()]
+        parts.append(f"<h3>Observations</h3>{_table(rows)}<p>{adj.get('gnc_iterations', 0)} robust iterations "
+                     f"(GNC, truncated least squares), {adj.get('knots', 0)} knots.</p>")
+    if adj.get("rejected"):
+        parts.append(f"<h3>Rejected observations (first {len(adj['rejected'])})</h3>{_table(adj['rejected'])}")
+    if adj.get("under_constrained"):
+        parts.append(f"<h3>Stretches with no observation</h3>{_table(adj['under_constrained'])}")
+    if control:
+        rows = [{k: v for k, v in c.items() if not isinstance(v, list)} for c in control]
+        parts.append(f"<h3>Control points: residual before and after [m]</h3>{_table(rows)}")
+    return "<h2>Global adjustment</h2>" + "".join(parts) if parts else ""
+
+
 def write_report(path, result, metrics: dict[str, Any]) -> None:
     """Write the HTML report for a pipeline result and its metrics."""
     qc = metrics["qc"]
@@ -86,6 +112,7 @@ def write_report(path, result, metrics: dict[str, Any]) -> None:
              for o in result.offsets]
     plots = "".join(f"<h2>{html.escape(t)}</h2>{img}" for t, img in _plots(result))
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in metrics.get("notes", []))
+    adjustment = _adjustment_section(metrics)
     truth = ""
     if "truth" in metrics:
         truth = f"<h2>Against the simulator's truth</h2><pre>{html.escape(json.dumps(metrics['truth'], indent=1)[:20000])}</pre>"
@@ -99,7 +126,7 @@ td,th{{border:1px solid #ccc;padding:2px 6px;text-align:right}}th{{background:#e
 {metrics['counts']['anchors']} anchors.</p>
 <ul>{notes}</ul>
 <h2>Summary</h2>{_table(summary)}
-{plots}{truth}
+{plots}{adjustment}{truth}
 <h2>Tile pairs</h2>{_table(pairs)}
 <h2>Timings [s]</h2><pre>{html.escape(json.dumps(metrics['seconds'], indent=1))}</pre>
 </body></html>"""
