@@ -78,7 +78,9 @@ def score(survey_dir: Path, result) -> dict:
     return {
         "h_before": pool(before, "rms_h"), "hmax_before": maxi(before, "max_h"),
         "h_after": pool(after, "rms_h"), "hmax_after": maxi(after, "max_h"), "v_after": pool(after, "rms_v"),
-        "abs_h_after": after["overall"]["rms_h"],
+        "v_before": pool(before, "rms_v"), "abs_h_before": before["overall"]["rms_h"],
+        "abs_h_after": after["overall"]["rms_h"], "abs_v_before": before["overall"]["rms_v"],
+        "abs_v_after": after["overall"]["rms_v"],
         "bound_gap": averaging_bound_gap(truth.trajectories, result.trajectories, result.corrected, truth.chainage),
         "worst_ok": float(max((np.linalg.norm(e) for e in off.values()), default=0.0)),
         "worst_tie": float(ties.max()) if len(ties) else 0.0, "ties_over_5cm": int((ties > 0.05).sum()),
@@ -107,8 +109,8 @@ def main() -> None:
     ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS after | abs h RMS | "
-          "gap to bound | worst ok offset | worst tie | ties > 5 cm | along used | s |")
+    print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS before -> after | "
+          "abs h / v RMS before -> after | gap to bound | worst ok offset | worst tie | ties > 5 cm | along used | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for scenario in args.scenarios:
         for seed in args.seeds:
@@ -124,7 +126,8 @@ def main() -> None:
             if args.pairs:
                 print_pairs(survey, result)
             print(f"| {scenario} | {seed} | {s['h_before']:.3f} / {s['hmax_before']:.2f} -> {s['h_after']:.3f} / "
-                  f"{s['hmax_after']:.3f} | {s['v_after']:.3f} | {s['abs_h_after']:.3f} | {s['bound_gap']:.3f} | "
+                  f"{s['hmax_after']:.3f} | {s['v_before']:.3f} -> {s['v_after']:.3f} | {s['abs_h_before']:.2f} / "
+                  f"{s['abs_v_before']:.2f} -> {s['abs_h_after']:.3f} / {s['abs_v_after']:.3f} | {s['bound_gap']:.3f} | "
                   f"{s['worst_ok']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
                   f"{s['used_share']:.0%} | {time.perf_counter() - t0:.0f} |", flush=True)
 

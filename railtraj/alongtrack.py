@@ -16,9 +16,11 @@ b's points within 5 cm of run a's when its curve is shifted by t). Then, as in b
 ambiguity fixing (Teunissen 1998), a Kalman smoother predicts the offset at every pair from the
 anchors (the trajectories' sd) and the pairs fixed so far, with the measured rates as input. A
 pair is fixed on the candidate nearest the prediction only when that candidate clearly beats the
-runner-up, and an alias one shortest period away, by ``min_period``. The fitness evidence counts
-at most 3 sigma, because the profile is measured about the matcher's own choice. Fixed pairs
-anchor the next round.
+runner-up, and an alias one shortest period (``min_period``) away that its profile shows no peak
+for, by ``min_margin``. The fitness evidence between candidates counts at most 3 sigma, because
+the profile is measured about the matcher's own choice. Against an alias without a peak (a misfit
+over 2.5 times the best) it counts 5 sigma, but only where the matcher's own alias check found no
+comparable rival (status ``ok``). Fixed pairs anchor the next round.
 
 What cannot be fixed stays ``ambiguous`` and is used across the track and in height only. This
 applies to ``ok`` pairs too: a pair the matcher found sure but the chain cannot confirm is
@@ -50,6 +52,7 @@ class AlongTrackOptions:
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
     evidence_ratio: float = 1.25    # a misfit ratio worth 3 sigma of evidence against a candidate
     max_evidence: float = 9.0       # ... and no candidate is charged more than that (3 sigma)
+    unseen_evidence: float = 25.0   # against an alias without a peak, where the matcher said ok
     min_fitness: float = 0.5        # pairs whose profile never reaches this give no evidence
     min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
@@ -66,6 +69,7 @@ class Pair:
     u: np.ndarray  # (k,) along-track offset of each candidate (run b's direction of travel)
     shift: np.ndarray  # (k,) shift of each candidate along the pair's axis from its d_ref
     evidence: np.ndarray  # (k,) cost of each candidate's misfit
+    unseen: float  # evidence against an alias the profile shows no peak for
     rate: float  # d u / d s from the pair's curve
     sd: float  # along-track sd of the pair's own fit
     prior_var: float  # variance of the along offset from the trajectories' sd
@@ -128,7 +132,11 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         return None  # no peak stands out: the pair says nothing along the track
     peaks = peaks[np.argsort(misfit[peaks])][: options.max_candidates]
     shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
-    shift = np.where(np.abs(shift) < 0.75 * prof["step"], 0.0, shift)  # the matcher's own fit
+    # a peak closer to the matcher's own fit than a quarter period is that fit (its windows
+    # place it better than the profile's 5 cm steps)
+    shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
+    shift, first = np.unique(shift, return_index=True)
+    peaks = peaks[first]
     m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
@@ -141,7 +149,9 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # the profile is measured about the matcher's curve, fitted at its own choice, so it favours
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
-    return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
+    # only a pair whose matcher found no comparable alias vouches against aliases its profile hides
+    unseen = options.unseen_evidence if o.status == "ok" else options.max_evidence
+    return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence, unseen,
                 float(np.asarray(pw["gradient"], float) @ direction) * sign, float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6))
 
@@ -187,8 +197,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[
             best = int(order[0])
             runner_up = cost[order[1]] if len(cost) > 1 else np.inf
             # an alias one shortest period away may exist although the profile showed no peak
-            # there: it would misfit by more than max_misfit_ratio, worth max_evidence
-            unseen = max(options.min_period - abs(p.u[best] - mu[i]), 0.0) ** 2 / total + options.max_evidence
+            # there: it would misfit by more than max_misfit_ratio (unseen_evidence)
+            unseen = max(options.min_period - abs(p.u[best] - mu[i]), 0.0) ** 2 / total + p.unseen
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
             result[i] = (float(p.shift[best]), margin, "ambiguous")

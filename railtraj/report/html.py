@@ -89,6 +89,13 @@ def _adjustment_section(metrics: dict[str, Any]) -> str:
         rows = [{"observations": k, **v} for k, v in adj["observations"].items()]
         parts.append(f"<h3>Observations</h3>{_table(rows)}<p>{adj.get('gnc_iterations', 0)} robust iterations "
                      f"(GNC, truncated least squares), {adj.get('knots', 0)} knots.</p>")
+    if adj.get("alongtrack"):
+        rows = [{k: v for k, v in r.items() if k != "candidate_shifts_m"} for r in adj["alongtrack"]]
+        fixed = sum(r["status"] == "ok" for r in rows)
+        parts.append(f"<h3>Along the track: {fixed} of {len(rows)} tile pairs with alias candidates fixed</h3>"
+                     f"<p>shift: the alias chosen, relative to the matcher's own offset (m); margin: how "
+                     f"much better it fits the chain than the runner-up (chi-square; fixed from 16)</p>"
+                     f"{_table(rows)}")
     if adj.get("rejected"):
         parts.append(f"<h3>Rejected observations (first {len(adj['rejected'])})</h3>{_table(adj['rejected'])}")
     if adj.get("under_constrained"):
