@@ -18,9 +18,10 @@ anchors (the trajectories' sd) and the pairs fixed so far, with the measured rat
 pair is fixed on the candidate nearest the prediction only when that candidate clearly beats the
 runner-up, and an alias one shortest period (``min_period``) away that its profile shows no peak
 for, by ``min_margin``. The fitness evidence between candidates counts at most 3 sigma, because
-the profile is measured about the matcher's own choice. Against an alias without a peak (a misfit
-over 2.5 times the best) it counts 5 sigma, but only where the matcher's own alias check found no
-comparable rival (status ``ok``). Fixed pairs anchor the next round.
+the profile is measured about the matcher's own choice. That holds for an alias the profile shows no
+peak for too: a matcher's ``ok`` is no proof (on a sparse scanner an ``ok`` pair sat 3 m off), so
+the nearest such alias, a multiple of ``min_period`` away, competes at 3 sigma. Fixed pairs
+anchor the next round.
 
 What cannot be fixed stays ``ambiguous`` and is used across the track and in height only. This
 applies to ``ok`` pairs too: a pair the matcher found sure but the chain cannot confirm is
@@ -52,7 +53,6 @@ class AlongTrackOptions:
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
     evidence_ratio: float = 1.25    # a misfit ratio worth 3 sigma of evidence against a candidate
     max_evidence: float = 9.0       # ... and no candidate is charged more than that (3 sigma)
-    unseen_evidence: float = 25.0   # against an alias without a peak, where the matcher said ok
     min_fitness: float = 0.5        # pairs whose profile never reaches this give no evidence
     min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
@@ -69,7 +69,6 @@ class Pair:
     u: np.ndarray  # (k,) along-track offset of each candidate (run b's direction of travel)
     shift: np.ndarray  # (k,) shift of each candidate along the pair's axis from its d_ref
     evidence: np.ndarray  # (k,) cost of each candidate's misfit
-    unseen: float  # evidence against an alias the profile shows no peak for
     rate: float  # d u / d s from the pair's curve
     sd: float  # along-track sd of the pair's own fit
     prior_var: float  # variance of the along offset from the trajectories' sd
@@ -149,9 +148,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # the profile is measured about the matcher's curve, fitted at its own choice, so it favours
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
-    # only a pair whose matcher found no comparable alias vouches against aliases its profile hides
-    unseen = options.unseen_evidence if o.status == "ok" else options.max_evidence
-    return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence, unseen,
+    return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 float(np.asarray(pw["gradient"], float) @ direction) * sign, float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6))
 
@@ -196,9 +193,11 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[
             order = np.argsort(cost)
             best = int(order[0])
             runner_up = cost[order[1]] if len(cost) > 1 else np.inf
-            # an alias one shortest period away may exist although the profile showed no peak
-            # there: it would misfit by more than max_misfit_ratio (unseen_evidence)
-            unseen = max(options.min_period - abs(p.u[best] - mu[i]), 0.0) ** 2 / total + p.unseen
+            # an alias a multiple of the shortest period away may exist although the profile
+            # showed no peak there; the one nearest the prediction competes (worth max_evidence)
+            k = np.round((p.u[best] - mu[i]) / options.min_period)
+            k = k if k != 0 else np.sign(p.u[best] - mu[i]) or 1.0
+            unseen = (p.u[best] - k * options.min_period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
             result[i] = (float(p.shift[best]), margin, "ambiguous")

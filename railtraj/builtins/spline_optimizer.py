@@ -53,7 +53,7 @@ class SplineConfig:
     use_weak_offsets: bool = True      # degenerate/ambiguous pairs constrain across and up
     robust_confidence: float = 0.999   # chi-square level beyond which an observation is rejected
     default_sd_m: float = 1.0          # prior sd where the trajectory reports none
-    prior_correlation: float = 50.0    # (knot_unit) length over which the reported sd is one independent error
+    prior_correlation: float = 500.0   # (knot_unit) length over which the reported sd is one independent error
     min_sd_m: float = 0.005            # floor on the reported sd
     max_gap: float = 10.0              # knots without any observation before a stretch is reported
     weak_span_sd_m: float = 0.05       # ... when the trajectory's own sd there exceeds this

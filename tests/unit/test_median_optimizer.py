@@ -144,7 +144,7 @@ def test_posterior_sd_comes_from_the_scatter_of_the_ties():
 def test_unused_weak_offsets_and_control_are_noted():
     a, b = _runs()
     ties = _ties(a, b, CHAINAGE)
-    offsets = [TileOffset("a", "b", "t1", "t1", status="ok"),
+    offsets = [TileOffset("a", "b", "t1", "t1", status="ok", ties=ties),
                TileOffset("a", "b", "t2", "t2", status="degenerate"),
                TileOffset("a", "b", "t3", "t3", status="ambiguous")]
     control = ControlObservations(["CP1"], ["a"], [1010.0], [[530100.0, 180000.0, 10.0]],
@@ -154,3 +154,6 @@ def test_unused_weak_offsets_and_control_are_noted():
     assert len(notes) == 2
     assert any("2 tile pairs" in n and "degenerate" in n and "ambiguous" in n for n in notes)
     assert any("1 control" in n for n in notes)
+    resolved = offsets + [TileOffset("a", "b", "t4", "t4", status="ok")]  # ok, resolved without ties
+    _, opt = _optimize({"a": a, "b": b}, [ties], resolved, None)
+    assert any("3 tile pairs" in n and "ok without ties" in n for n in opt.diagnostics["notes"])
