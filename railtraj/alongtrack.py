@@ -60,6 +60,10 @@ class AlongTrackOptions:
     max_pair_sd: float = 0.03       # m: a pair whose own along-track fit is vaguer is never fixed
 
 
+#: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
+NO_EVIDENCE = "no along-track evidence"
+
+
 @dataclass
 class Pair:
     """One tile pair in a chain: its candidates and what predicts its neighbours."""
@@ -85,8 +89,13 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     travelled = {r: _travelled(t) for r, t in trajectories.items()}
     for k, o in enumerate(offsets):
         pair = _candidates(k, o, trajectories, travelled, options)
-        if pair is not None:
+        if isinstance(pair, Pair):
             chains.setdefault((o.run_a, o.run_b), []).append(pair)
+        elif pair == NO_EVIDENCE and o.ok:  # every shift fits alike: the matcher's ok has no ground
+            out[k] = _apply(o, 0.0, False, trajectories)
+            report.append({"run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+                           "status_before": o.status, "status": out[k].status, "verdict": NO_EVIDENCE,
+                           "shift_m": 0.0, "margin": 0.0, "candidates": 0, "candidate_shifts_m": []})
     for (run_a, run_b), chain in sorted(chains.items()):
         chain.sort(key=lambda p: p.s)
         for pair, (shift, margin, verdict) in zip(chain, _resolve_chain(chain, options), strict=True):
@@ -105,8 +114,9 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
 
 
 def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
-                travelled: dict[str, np.ndarray], options: AlongTrackOptions) -> Pair | None:
-    """The pair's alias candidates, or None if it has no along-track fit to choose from."""
+                travelled: dict[str, np.ndarray], options: AlongTrackOptions) -> Pair | str | None:
+    """The pair's alias candidates; :data:`NO_EVIDENCE` if its profile shows no peak at all (it
+    fits alike at every shift); None if it has no along-track fit to choose from."""
     pw, prof = o.info.get("piecewise"), o.info.get("alias_profile")
     if o.status not in ("ok", "ambiguous", "degenerate") or not pw or not prof or "fit_cov" not in pw:
         return None
@@ -115,7 +125,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         return None
     fitness = np.asarray(prof["fitness"], float)
     if not len(fitness) or fitness.max() < options.min_fitness:
-        return None  # the pair's clouds hardly meet at any shift: no along-track evidence
+        return NO_EVIDENCE  # the pair's clouds hardly meet at any shift
     ts = prof["start"] + prof["step"] * np.arange(len(fitness))
     misfit = np.maximum(1.0 - fitness, 1e-3)
     # candidates are the significant peaks only: a profile's noise is no alias. A peak stands
@@ -128,7 +138,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     peaks = peaks[props["prominences"] >= options.min_significance * noise]
     peaks = peaks[misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()] if len(peaks) else peaks
     if not len(peaks):
-        return None  # no peak stands out: the pair says nothing along the track
+        return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
     peaks = peaks[np.argsort(misfit[peaks])][: options.max_candidates]
     shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
     # a peak closer to the matcher's own fit than a quarter period is that fit (its windows

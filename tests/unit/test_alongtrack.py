@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
@@ -101,3 +103,14 @@ def test_disabled_returns_the_offsets_unchanged():
     offsets, trajs, _ = _chain({2: 3.0}, statuses={})
     out, report = resolve_along_track(offsets, trajs, AlongTrackOptions(enabled=False))
     assert out == offsets and report == []
+
+
+def test_an_ok_pair_whose_profile_is_flat_is_demoted():
+    """A featureless pair fits alike at every shift: whatever its matcher said, it is not ok."""
+    offsets, trajs, _ = _chain({}, statuses={k: "ok" for k in range(12)})
+    flat = offsets[5]
+    profile = dict(flat.info["alias_profile"], fitness=[0.997] * len(flat.info["alias_profile"]["fitness"]))
+    offsets[5] = replace(flat, info=dict(flat.info, alias_profile=profile))
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[5].status == "ambiguous" and not len(out[5].ties) and "demoted" in out[5].info
+    assert any(r["verdict"] == "no along-track evidence" for r in report)
