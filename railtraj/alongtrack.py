@@ -51,6 +51,7 @@ class AlongTrackOptions:
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
+    cycle_radius: float = 15.0      # m: ok pairs of three runs this close are checked for closure
     evidence_ratio: float = 1.25    # a misfit ratio worth 3 sigma of evidence against a candidate
     max_evidence: float = 9.0       # ... and no candidate is charged more than that (3 sigma)
     min_fitness: float = 0.5        # pairs whose profile never reaches this give no evidence
@@ -58,6 +59,22 @@ class AlongTrackOptions:
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
     max_candidates: int = 40
     max_pair_sd: float = 0.03       # m: a pair whose own along-track fit is vaguer is never fixed
+
+
+@dataclass(frozen=True)
+class Curve:
+    """An ok pair's offset near its reference point, for the cycle check: ``sign`` -1 reads it
+    the other way round (moving the first run onto the second)."""
+
+    index: int
+    ref: np.ndarray
+    axis: np.ndarray
+    gradient: np.ndarray
+    d: np.ndarray
+    sign: float
+
+    def at(self, p: np.ndarray) -> np.ndarray:
+        return self.sign * (self.d + self.gradient * ((p - self.ref) @ self.axis))
 
 
 #: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
@@ -106,11 +123,53 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
                            "margin": round(min(margin, 1e6), 1), "candidates": len(pair.shift),
                            "candidate_shifts_m": np.round(pair.shift, 2).tolist()})
+    for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
+        demoted = _apply(out[k], 0.0, False, trajectories)
+        out[k] = replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close"))
+        report.append({"run_a": out[k].run_a, "run_b": out[k].run_b, "tile_a": out[k].tile_a,
+                       "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
+                       "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
+                       "candidate_shifts_m": []})
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] == "ok" for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
              sum(r["status"] != "ok" for r in report))
     return out, report
+
+
+def _cycle_breaks(offsets: list[TileOffset], options: AlongTrackOptions) -> list[int]:
+    """Indices of ``ok`` pairs in a triangle of runs that does not close.
+
+    At the same place, ``d_ab + d_bc = d_ac`` (each moves the second run onto the first). Three
+    ``ok`` pairs whose reference points lie within ``cycle_radius`` of each other and whose sum
+    misses by more than half ``min_period`` hold a wrong alias somewhere. Which one cannot be told
+    from the triangle alone, so all three are demoted. A whole run shifted by one period passes
+    every cycle: the anchors at the portals are what catch that.
+    """
+    by_pair: dict[tuple[str, str], list[Curve]] = {}
+    for k, o in enumerate(offsets):
+        pw = o.info.get("piecewise", {})
+        if not (o.ok and "ref_point" in pw):
+            continue
+        ref, axis, grad = (np.asarray(pw[key], float) for key in ("ref_point", "axis", "gradient"))
+        by_pair.setdefault((o.run_a, o.run_b), []).append(Curve(k, ref, axis, grad, np.asarray(o.d, float), 1.0))
+        by_pair.setdefault((o.run_b, o.run_a), []).append(Curve(k, ref, axis, grad, np.asarray(o.d, float), -1.0))
+    runs = sorted({r for pair in by_pair for r in pair})
+    broken: set[int] = set()
+    for a, b, c in ((a, b, c) for a in runs for b in runs for c in runs if a < b < c):
+        for ab in by_pair.get((a, b), []):  # a few hundred pairs: small loops
+            near_bc, near_ac = (_near(by_pair.get(key, []), ab.ref, options.cycle_radius) for key in ((b, c), (a, c)))
+            for bc in near_bc:
+                for ac in near_ac:  # each pair's offset taken at the same place (its drift rate)
+                    if np.linalg.norm(ab.at(ab.ref) + bc.at(ab.ref) - ac.at(ab.ref)) > 0.5 * options.min_period:
+                        broken |= {ab.index, bc.index, ac.index}
+    if broken:
+        log.warning("along-track: %d ok tile pairs in triangles of runs that do not close; demoted", len(broken))
+    return sorted(broken)
+
+
+def _near(curves: list[Curve], p: np.ndarray, radius: float) -> list[Curve]:
+    return [q for q in curves if np.linalg.norm((q.ref - p)[:2]) <= radius]
 
 
 def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],

@@ -114,3 +114,22 @@ def test_an_ok_pair_whose_profile_is_flat_is_demoted():
     out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
     assert out[5].status == "ambiguous" and not len(out[5].ties) and "demoted" in out[5].info
     assert any(r["verdict"] == "no along-track evidence" for r in report)
+
+
+def _ok(run_a: str, run_b: str, d, s: float) -> TileOffset:
+    info = {"piecewise": {"axis": [1.0, 0.0, 0.0], "gradient": [0.01, 0.0, 0.0], "ref_point": [530000 + s, 180000.0, 10.0],
+                          "fit_cov": (np.eye(3) * 0.005**2).tolist()}}
+    return TileOffset(run_a, run_b, f"{run_a}{s:.0f}", f"{run_b}{s:.0f}", d=np.asarray(d, float),
+                      cov=np.eye(3) * 0.005**2, status="ok", ties=Ties.empty(run_a, run_b), info=info)
+
+
+def test_a_triangle_of_runs_that_does_not_close_is_demoted():
+    """At the same place d_ab + d_bc = d_ac; a 1.5 m alias on one edge breaks the triangle."""
+    d_ab, d_bc = np.array([0.4, 0.1, 0.02]), np.array([-0.7, 0.05, 0.01])
+    good = [_ok("a", "b", d_ab, 100.0), _ok("b", "c", d_bc, 104.0), _ok("a", "c", d_ab + d_bc + [0.04, 0, 0], 104.0)]
+    out, _ = resolve_along_track(good, {}, AlongTrackOptions())
+    assert all(o.status == "ok" for o in out)  # closes within the drift between 100 and 104 m
+    bad = good[:2] + [_ok("a", "c", d_ab + d_bc + [1.5, 0, 0], 104.0)] + [_ok("a", "b", d_ab, 300.0)]
+    out, report = resolve_along_track(bad, {}, AlongTrackOptions())
+    assert [o.status for o in out] == ["ambiguous", "ambiguous", "ambiguous", "ok"]
+    assert sum(r["verdict"] == "cycle not closed" for r in report) == 3
