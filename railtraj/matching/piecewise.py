@@ -145,10 +145,21 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz``; windows without enough points or a valley are left out.
-    A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``."""
-    span = float(np.ptp(s)) if len(s) else 0.0
+    A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
+
+    The windows cover the central 99 % of the points along the track when the rest stretch the
+    range by over 10 %: a few stray points metres beyond a partial overlap (a diagonal tile
+    corner) must not spread the grid so that most windows fall where there is nothing to fit.
+    ``tau`` is the matcher's fitness radius, which follows the scan's profile spacing; each
+    window's fitness is counted within it too (at a fixed 5 cm, a 16 cm profile gap left every
+    window of a fast run below 0.5 and its pair ``degenerate``)."""
+    lo_s, hi_s = (float(s.min()), float(s.max())) if len(s) else (0.0, 0.0)
+    core = np.quantile(s, [0.005, 0.995]) if len(s) else (0.0, 0.0)
+    if core[1] - core[0] < 0.9 * (hi_s - lo_s):  # stray points stretch the grid by over 10 %
+        lo_s, hi_s = float(core[0]), float(core[1])
+    span = hi_s - lo_s
     n_win = max(1, round(span / length), min(min_windows, int(span // min_length))) if len(s) else 0
-    edges = np.linspace(s.min(), s.max(), n_win + 1) if n_win else np.zeros(1)
+    edges = np.linspace(lo_s, hi_s, n_win + 1) if n_win else np.zeros(1)
     ts = np.arange(-search, search + step / 2, step)
     rows = []
     for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):  # a handful of windows
@@ -156,7 +167,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if inside.sum() < min_points:
             continue
         pts = sample(moving[inside], points, seed=k)
-        fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=0.2)
+        fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             continue
         t = profile_minimum(ts, along_profile(tree, pts, fit.d, axis, ts, tau))
