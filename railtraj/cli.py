@@ -10,16 +10,18 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
-from railtraj.config import register_configs
-from railtraj.errors import RailtrajError
+from railtraj.config import anchors_mode, register_configs
+from railtraj.errors import OutputError, RailtrajError
 
 log = logging.getLogger("railtraj")
 _failures: list[str] = []
@@ -53,6 +55,7 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     from railtraj.io.atomic import atomic_write
     from railtraj.pipeline import PipelineOptions, run_pipeline
 
+    anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
     if cfg.threads:
         from railtraj.o3d import o3d
         o3d.utility.set_max_threads(int(cfg.threads))
@@ -72,11 +75,15 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
                               max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir,
                               alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)))
     stages = build_stages(cfg)
+    if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
+        from railtraj.crs import etrs89_transformer
+        etrs89_transformer(cfg.crs, grid_dir)
+    result = run_pipeline(survey_dir, stages, options)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # written once the inputs passed, so a run that fails on bad input keeps the previous one
     with atomic_write(out_dir / "config.yaml") as fh:
         fh.write(OmegaConf.to_yaml(cfg, resolve=True))
-    result = run_pipeline(survey_dir, stages, options)
-    write_outputs(result, out_dir, anchors=str(cfg.anchors), write_tiles=bool(cfg.write_tiles),
+    write_outputs(result, out_dir, anchors=anchors, write_tiles=bool(cfg.write_tiles),
                   executor=stages.executor, truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
                   config=OmegaConf.to_container(cfg, resolve=True))
     log.info("outputs written to %s", out_dir)
@@ -93,9 +100,73 @@ def _hydra_main(cfg: DictConfig) -> None:
         print(f"railtraj: error: {exc}", file=sys.stderr)
 
 
+#: Hydra prints a traceback and exits 1 unless this is "1"; then it raises and main() reports
+HYDRA_FULL_ERROR = "HYDRA_FULL_ERROR"
+_OUT_DIR_ARG = re.compile(r"^\+{0,2}out_dir=(.*)$")
+
+
+def check_out_dir(args: list[str]) -> None:
+    """Refuse an ``out_dir=`` on the command line that is, or lies inside, an existing file.
+
+    Hydra creates out_dir before the job starts, so this must be checked before Hydra runs.
+    """
+    for arg in args:
+        m = _OUT_DIR_ARG.match(arg)
+        if not m or not m.group(1) or "${" in m.group(1):
+            continue
+        path = Path(m.group(1).strip("'\""))
+        for p in (path, *path.parents):
+            if p.exists() and not p.is_dir():
+                where = "is an existing file" if p == path else f"cannot be created: {p} is a file"
+                raise OutputError(f"out_dir {path} {where}; give a folder path as out_dir=... "
+                                  "(new or existing), or move that file away")
+            if p.exists():
+                break
+
+
+def hydra_error_line(exc: BaseException) -> str:
+    """Hydra's multi-line message (unknown key, missing group option, bad value) as one line."""
+    text = str(exc) + ("\n" + str(exc.__cause__) if exc.__cause__ is not None else "")
+    parts: list[str] = []
+    for line in text.split("Config search path:")[0].splitlines():
+        item = line.strip().rstrip(".")
+        if not item or item.startswith(("full_key:", "object_type=", "reference_type=")):
+            continue
+        if line.startswith("\t") and parts:  # an indented list of valid options
+            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + item
+        else:
+            parts.append(item.removeprefix("In 'railtraj': "))
+    return "; ".join(parts) + " (railtraj --help lists the groups and options)"
+
+
+def _fail(message: str) -> None:
+    print(f"railtraj: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
 def main() -> None:
-    """Console entry point: run Hydra, then exit 2 if any job reported a bad input."""
-    _hydra_main()
+    """Console entry point: run Hydra; any bad input is one line on stderr and exit status 2.
+
+    Hydra is told to raise its own errors (unknown option, bad value) instead of printing them
+    with exit 1, so they get the same one-line treatment; with HYDRA_FULL_ERROR=1 set by the user
+    they propagate as they are.
+    """
+    user_full_error = os.environ.get(HYDRA_FULL_ERROR) == "1"
+    os.environ[HYDRA_FULL_ERROR] = "1"
+    try:
+        check_out_dir(sys.argv[1:])
+        _hydra_main()
+    except RailtrajError as exc:
+        _fail(str(exc))
+    except CompactHydraException as exc:
+        if user_full_error:
+            raise
+        _fail(hydra_error_line(exc))
+    except (FileExistsError, NotADirectoryError) as exc:  # Hydra creating out_dir under a file
+        if user_full_error:
+            raise
+        _fail(f"cannot create the output folder {exc.filename}: a file is in the way; choose "
+              "another out_dir=... or move that file away")
     if _failures:
         sys.exit(2)
 

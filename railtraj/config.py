@@ -16,6 +16,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from railtraj.alongtrack import AlongTrackOptions
+from railtraj.errors import ConfigError
 from railtraj.plugins import registry
 
 
@@ -63,6 +64,22 @@ class RunConfig:
     pipeline: Any = MISSING
 
 
+#: accepted spellings of ``anchors=`` (Hydra turns true/false into booleans) and what they mean
+ANCHORS_MODES = {"auto": "auto", "true": "true", "yes": "true", "on": "true", "required": "true",
+                 "false": "false", "no": "false", "off": "false"}
+
+
+def anchors_mode(value: Any) -> str:
+    """``auto``, ``true`` or ``false`` for an ``anchors=`` value; anything else is a ConfigError,
+    because a typo must not silently behave like ``auto``."""
+    mode = ANCHORS_MODES.get(str(value).strip().lower())
+    if mode is None:
+        raise ConfigError(f"anchors={value} is not an option: use anchors=auto (write anchors.csv "
+                          "when the OS grids are found), anchors=true (fail without them) or "
+                          "anchors=false (skip anchors.csv)")
+    return mode
+
+
 #: the defaults list: which option of each group a plain `railtraj` uses.
 DEFAULTS: list[Any] = [
     "railtraj_schema",
@@ -94,4 +111,4 @@ def register_configs(cs: ConfigStore | None = None) -> None:
     cs.store(name="railtraj", node={"defaults": DEFAULTS, "hydra": HYDRA_OVERRIDES})
 
 
-__all__ = ["RunConfig", "PipelineConfig", "register_configs", "field"]
+__all__ = ["RunConfig", "PipelineConfig", "register_configs", "anchors_mode", "field"]

@@ -57,13 +57,13 @@ class Trajectory:
                 row = int(np.flatnonzero((~np.isfinite(arr.reshape(n, -1))).any(axis=1))[0])
                 raise TrajectoryError(
                     f"trajectory {self.run_id!r} has a NaN or infinite {name} at epoch {row} "
-                    f"(time {self.time[row]!r}); remove or fill that epoch")
+                    f"(time {float(self.time[row])}); remove or fill that epoch")
         steps = np.diff(self.time)
         if (steps <= 0).any():
             k = int(np.argmax(steps <= 0))
             raise TrajectoryError(
                 f"trajectory {self.run_id!r} times are not strictly increasing at epoch {k + 1} "
-                f"({self.time[k]!r} then {self.time[k + 1]!r}); sort it and drop duplicate epochs")
+                f"({float(self.time[k])} then {float(self.time[k + 1])}); sort it and drop duplicate epochs")
 
     def __len__(self) -> int:
         return len(self.time)

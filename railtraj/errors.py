@@ -32,6 +32,10 @@ class CRSError(InputError):
     """A coordinate transformation cannot be done accurately (wrong CRS or missing grids)."""
 
 
+class OutputError(InputError):
+    """The output folder cannot be created or written (out_dir is a file, or not writable)."""
+
+
 class PluginError(RailtrajError):
     """A plugin failed to import, registered something invalid, or was not found."""
 

@@ -26,7 +26,14 @@ from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileO
 from railtraj.errors import ConfigError
 from railtraj.georef import regeoreference_points
 from railtraj.io.las import read_tile
-from railtraj.io.survey import Survey, TilePair, find_overlaps, open_survey, require_overlaps
+from railtraj.io.survey import (
+    Survey,
+    TilePair,
+    find_overlaps,
+    open_survey,
+    require_overlaps,
+    unparsed_crs_note,
+)
 from railtraj.qc import c2c_distances, distance_stats, tie_residuals
 
 log = logging.getLogger(__name__)
@@ -99,6 +106,9 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     trajectories = {r: survey.load_trajectory(r, crs=options.crs, grid_dir=options.grid_dir)
                     for r in survey.runs}
     check_survey(survey, trajectories, options.crs)
+    survey_notes = [n for n in [unparsed_crs_note(survey, options.crs)] if n]
+    for note in survey_notes:
+        log.warning(note)
     pairs = select_pairs(survey, options)
     clock["load"] = time.perf_counter() - t0
     log.info("survey %s: %d runs, %d tiles, %d tile pairs to match", survey.root, len(survey.runs),
@@ -126,6 +136,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories)
+    notes = survey_notes + notes
     clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -151,7 +162,7 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
     corrected = optimizer.optimize(trajectories, ties, offsets, **kwargs)
     adjustment = dict(getattr(optimizer, "diagnostics", None) or {})
     notes += adjustment.get("notes", [])
-    if all(corrected[r] is trajectories[r] for r in trajectories):
+    if all(np.array_equal(corrected[r].xyz, trajectories[r].xyz) for r in trajectories):
         note = "the optimizer left every trajectory unchanged"
         if note not in " ".join(notes):
             log.warning(note)

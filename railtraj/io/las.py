@@ -43,6 +43,7 @@ class TileHeader:
     version: str
     has_gps_time: bool
     crs: pyproj.CRS | None = None
+    crs_error: str = ""  # why the CRS record could not be parsed ("" if it could, or is absent)
 
     @property
     def name(self) -> str:
@@ -63,17 +64,24 @@ def missing_gps_time_error(path: Path, point_format: int) -> FormatError:
         "format that carries gps_time (1, 3, 5, 6-10)")
 
 
+def empty_tile_error(path: Path) -> FormatError:
+    """The error for a tile whose header says it holds no points (its bounds are meaningless)."""
+    return FormatError(f"LAS/LAZ file {path} is empty (0 points): remove it from tiles/, or "
+                       "re-export the tile if it should hold points")
+
+
 def _header_info(path: Path, h: laspy.LasHeader) -> TileHeader:
+    crs, crs_error = None, ""
     try:
         crs = h.parse_crs()
-    except Exception:  # noqa: BLE001 - a broken CRS record must not stop reading the points
-        crs = None
+    except Exception as err:  # noqa: BLE001 - a broken CRS record must not stop reading the points
+        crs_error = f"{type(err).__name__}: {err}".splitlines()[0]
     return TileHeader(
         path=path, point_count=int(h.point_count), mins=np.array(h.mins, dtype=np.float64),
         maxs=np.array(h.maxs, dtype=np.float64), scales=np.array(h.scales, dtype=np.float64),
         offsets=np.array(h.offsets, dtype=np.float64), point_format=int(h.point_format.id),
         version=str(h.version), has_gps_time="gps_time" in h.point_format.dimension_names,
-        crs=crs)
+        crs=crs, crs_error=crs_error)
 
 
 def read_header(path: str | os.PathLike) -> TileHeader:

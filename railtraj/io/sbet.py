@@ -72,8 +72,22 @@ def write_sbet(path: str | os.PathLike, records: np.ndarray) -> None:
 
 
 def read_smrmsg(path: str | os.PathLike) -> np.ndarray:
-    """All records of an SMRMSG file as a structured array with fields :data:`SMRMSG_FIELDS`."""
-    return _read_records(path, SMRMSG_DTYPE, "SMRMSG")
+    """All records of an SMRMSG file as a structured array with fields :data:`SMRMSG_FIELDS`.
+
+    Position RMS must be positive and the others not negative: they become the trajectory's sd,
+    which weighs every epoch in the adjustment.
+    """
+    records = _read_records(path, SMRMSG_DTYPE, "SMRMSG")
+    for name in SMRMSG_FIELDS[1:]:
+        col = records[name]
+        bad = ~(col > 0) if name in ("north_rms", "east_rms", "down_rms") else ~(col >= 0)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise FormatError(
+                f"SMRMSG file {path}: {name} is {float(col[k])} at record {k + 1} (time "
+                f"{float(records['time'][k])}) and {int(bad.sum())} record(s) in all; RMS values "
+                "must be positive: it is corrupt or not an SMRMSG, re-export it from POSPac")
+    return records
 
 
 def write_smrmsg(path: str | os.PathLike, records: np.ndarray) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from railtraj.data import Trajectory
 from railtraj.errors import NoOverlapError, SurveyError
-from railtraj.io.las import TileHeader, missing_gps_time_error, read_header
+from railtraj.io.las import TileHeader, empty_tile_error, missing_gps_time_error, read_header
 from railtraj.io.sbet import find_smrmsg, read_sbet, read_smrmsg, sbet_to_trajectory
 from railtraj.io.trajectory_csv import read_text_columns, read_trajectory_csv, to_float
 
@@ -84,6 +84,9 @@ def _open_run(folder: Path) -> RunInfo:
     no_time = [t for t in tiles if not t.has_gps_time]
     if no_time:
         raise missing_gps_time_error(no_time[0].path, no_time[0].point_format)
+    empty = [t for t in tiles if t.point_count == 0]
+    if empty:
+        raise empty_tile_error(empty[0].path)
     smrmsg = find_smrmsg(trajs[0]) if trajs[0].suffix == ".sbet" else None
     return RunInfo(folder.name, folder, trajs[0], tiles, smrmsg)
 
@@ -97,7 +100,8 @@ def open_survey(path: str | os.PathLike) -> Survey:
     """Discover the runs of a survey folder and read their tile headers.
 
     A sub-folder with a trajectory file or a tiles/ folder is a run and must have both; other
-    sub-folders and hidden ones are ignored. A survey needs two or more runs.
+    sub-folders and hidden ones are ignored. A survey needs two or more runs. control.csv, when
+    present, is read here too, so a malformed one fails before any heavy work.
     """
     root = Path(path)
     if not root.exists():
@@ -114,7 +118,20 @@ def open_survey(path: str | os.PathLike) -> Survey:
         raise SurveyError(f"survey folder {root}: found {found}{names}; a survey needs 2 or more "
                           "run folders each with trajectory.csv and tiles/*.laz")
     control = root / "control.csv"
+    if control.is_file():
+        read_control(control)
     return Survey(root, runs, control if control.is_file() else None)
+
+
+def unparsed_crs_note(survey: Survey, crs: str) -> str | None:
+    """A note naming the tiles whose CRS record could not be parsed (they are taken to be in
+    ``crs``, unchecked), or None when every tile's CRS was read or absent."""
+    bad = [t for run in survey.runs.values() for t in run.tiles if t.crs_error]
+    if not bad:
+        return None
+    return (f"{len(bad)} tile(s) have a CRS record that cannot be parsed, so they were assumed to be "
+            f"in the survey CRS {crs} without a check (first: {bad[0].path}: {bad[0].crs_error}); "
+            "rewrite their CRS, or check they are in that CRS")
 
 
 @dataclass(frozen=True)
@@ -180,17 +197,37 @@ class ControlPoints:
 
 
 def read_control(path: str | os.PathLike) -> ControlPoints:
-    """Read control.csv (id,x,y,z,sd_x,sd_y,sd_z; header names, any order)."""
+    """Read control.csv (id,x,y,z,sd_x,sd_y,sd_z; header names, any order).
+
+    Every id must be present and unique: observations refer to control points by id.
+    """
     what = "control file"
     names = ("id", "x", "y", "z", "sd_x", "sd_y", "sd_z")
     cols = read_text_columns(path, names, what)
+    ids = cols["id"]
+    if not len(ids):
+        raise SurveyError(f"{what} {path} has a header but no control points: add them (one per "
+                          "line: id,x,y,z,sd_x,sd_y,sd_z) or remove the file")
+    if (ids == "").any():
+        row = int(np.argmax(ids == ""))
+        raise SurveyError(f"{what} {path}, data row {row + 1}: the id is empty; give every "
+                          "control point an id")
+    uniq, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        dup = uniq[counts > 1]
+        raise SurveyError(f"{what} {path}: id(s) {', '.join(map(str, dup[:5]))} appear more than "
+                          "once; give every control point a unique id (or remove the repeated rows)")
     num = {c: to_float(cols[c], c, path, what) for c in names[1:]}
     xyz = np.column_stack([num["x"], num["y"], num["z"]])
     sd = np.column_stack([num["sd_x"], num["sd_y"], num["sd_z"]])
     if not np.isfinite(xyz).all():
-        raise SurveyError(f"{what} {path} has a NaN or infinite coordinate: fix or remove that "
-                          "control point")
-    if not (np.isfinite(sd).all() and (sd > 0).all()):
-        raise SurveyError(f"{what} {path}: every sd_x, sd_y, sd_z must be a positive number "
-                          "(the control point's 1-sigma in metres); fix those cells")
+        row = int(np.argmax(~np.isfinite(xyz).all(axis=1)))
+        raise SurveyError(f"{what} {path} has a NaN or infinite coordinate for control point "
+                          f"{ids[row]} (data row {row + 1}): fix or remove that control point")
+    bad = ~(np.isfinite(sd) & (sd > 0))
+    if bad.any():
+        row, k = (int(v) for v in np.argwhere(bad)[0])
+        raise SurveyError(f"{what} {path}: {names[4 + k]} of control point {ids[row]} (data row "
+                          f"{row + 1}) is {float(sd[row, k])}; every sd_x, sd_y, sd_z must be a "
+                          "positive number (the point's 1-sigma in metres): fix those cells")
     return ControlPoints(cols["id"], xyz, sd)

@@ -133,8 +133,9 @@ def _is_float(text: str) -> bool:
 def read_trajectory_csv(path: str | os.PathLike, run_id: str = "") -> Trajectory:
     """Read a SPEC trajectory.csv: time,x,y,z,roll,pitch,heading and optional sd_x,sd_y,sd_z.
 
-    sd columns are used only when all three are present. Non-finite values and unsorted times
-    are reported with the file and line, so the surveyor can fix the export.
+    sd columns are used only when all three are present. Non-finite values, sd that are not
+    positive and unsorted times are reported with the file and row, so the surveyor can fix the
+    export (a negative sd would otherwise weigh that epoch wrongly without a word).
     """
     what = "trajectory"
     cols = read_numeric_columns(path, REQUIRED, OPTIONAL_SD, what)
@@ -144,8 +145,10 @@ def read_trajectory_csv(path: str | os.PathLike, run_id: str = "") -> Trajectory
         if bad.any():
             row = int(np.argmax(bad))
             raise TrajectoryError(
-                f"{what} {path}: column {name!r} is {col[row]} at data row {row + 1} "
-                f"(time {cols['time'][row]!r}); remove or fill that epoch")
+                f"{what} {path}: column {name!r} is {float(col[row])} at data row {row + 1} "
+                f"(time {float(cols['time'][row])}); remove or fill that epoch")
+    if have_sd:
+        _check_sd(np.column_stack([cols[c] for c in OPTIONAL_SD]), cols["time"], path, what)
     try:
         return Trajectory(
             time=cols["time"],
@@ -155,6 +158,18 @@ def read_trajectory_csv(path: str | os.PathLike, run_id: str = "") -> Trajectory
             run_id=run_id)
     except TrajectoryError as err:
         raise TrajectoryError(f"{path}: {err}") from None
+
+
+def _check_sd(sd: np.ndarray, time: np.ndarray, path, what: str) -> None:
+    """Raise if an sd is zero or negative: a 1-sigma must be positive to weigh its epoch."""
+    bad = ~(sd > 0)
+    if bad.any():
+        row, k = (int(v) for v in np.argwhere(bad)[0])
+        n_bad = int(bad.any(axis=1).sum())
+        raise TrajectoryError(
+            f"{what} {path}: column {OPTIONAL_SD[k]!r} is {float(sd[row, k])} at data row "
+            f"{row + 1} (time {float(time[row])}) and {n_bad} row(s) in all; sd_x, sd_y, sd_z "
+            "must be positive 1-sigma in metres: fix the export, or remove the three sd columns")
 
 
 def write_trajectory_csv(path: str | os.PathLike, traj: Trajectory) -> None:

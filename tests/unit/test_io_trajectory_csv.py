@@ -109,3 +109,25 @@ def test_blank_and_comment_lines_are_skipped(tmp_path):
     path = tmp_path / "t.csv"
     path.write_text(GOOD + "\n# a note\n3.0,12,22,32,0,0,92\n")
     assert len(read_trajectory_csv(path)) == 3
+
+
+@pytest.mark.parametrize(("cell", "shown"), [("-0.02", "-0.02"), ("0", "0.0")])
+def test_sd_that_is_not_positive_is_refused_with_row_and_count(tmp_path, cell, shown):
+    path = tmp_path / "t.csv"
+    path.write_text("time,x,y,z,roll,pitch,heading,sd_x,sd_y,sd_z\n1.0,10,20,30,0,0,90,0.1,0.1,0.1\n"
+                    f"2.0,11,21,31,1,2,91,0.1,{cell},0.1\n3.0,12,22,32,1,2,91,0.1,{cell},-1\n")
+    with pytest.raises(TrajectoryError, match=rf"column 'sd_y' is {shown} at data row 2 \(time 2.0\) "
+                                              r"and 2 row\(s\) in all") as err:
+        read_trajectory_csv(path)
+    assert "remove the three sd columns" in str(err.value) and str(path) in str(err.value)
+
+
+def test_messages_show_plain_numbers(tmp_path):
+    path = tmp_path / "t.csv"
+    path.write_text(GOOD + "346740.519,12,22,nan,0,0,92\n")
+    with pytest.raises(TrajectoryError, match=r"\(time 346740.519\)") as err:
+        read_trajectory_csv(path)
+    path.write_text(GOOD + "2.0,12,22,32,0,0,92\n")
+    with pytest.raises(TrajectoryError, match=r"\(2.0 then 2.0\)") as err2:
+        read_trajectory_csv(path)
+    assert "np." not in str(err.value) + str(err2.value)
