@@ -25,7 +25,8 @@ from railtraj.errors import OutputError, RailtrajError
 
 log = logging.getLogger("railtraj")
 _failures: list[str] = []
-#: environment variable naming the folder of the OSTN15/OSGM15 grids when proj_grid_dir is not set
+#: environment variable naming a folder of PROJ grids when proj_grid_dir is not set; with neither,
+#: railtraj.crs uses the OSTN15/OSGM15 grids shipped in railtraj/grids/
 GRID_DIR_ENV = "RAILTRAJ_PROJ_GRID_DIR"
 
 try:

@@ -7,6 +7,10 @@ a Helmert shift and a "ballpark" vertical step: metres wrong horizontally and 44
 height, with only a warning. So every transformer here is built with ``only_best=True`` and
 ``allow_ballpark=False``, which makes PROJ raise instead, and that becomes a :class:`CRSError`
 telling the user where to get the grids. Results are checked to be finite (``errcheck=True``).
+
+The two grids ship with railtraj (``railtraj/grids/``, BSD-2 from PROJ-data ``uk_os/``) and are
+put last on PROJ's search path, so BNG works out of the box while ``PROJ_DATA``, PROJ's user
+folder and an explicit ``grid_dir`` still win.
 """
 
 from __future__ import annotations
@@ -24,8 +28,11 @@ from railtraj.errors import CRSError
 
 ETRS89_3D = "EPSG:4937"
 OS_GRIDS = ("uk_os_OSTN15_NTv2_OSGBtoETRS.tif", "uk_os_OSGM15_GB.tif")
-_OS_HINT = ("the Ordnance Survey grids {} and {} were not found; download them from PROJ-data "
-            "(uk_os/) and pass their folder as proj_grid_dir=...").format(*OS_GRIDS)
+#: the OS grids shipped as package data; searched after every other PROJ data folder
+PACKAGED_GRID_DIR = Path(__file__).resolve().with_name("grids")
+_OS_HINT = ("the Ordnance Survey grids {} and {} were not found (railtraj ships them in "
+            "railtraj/grids/: reinstall railtraj, or download them from PROJ-data (uk_os/) and "
+            "pass their folder as proj_grid_dir=...)").format(*OS_GRIDS)
 
 
 def survey_crs(crs: str | pyproj.CRS) -> pyproj.CRS:
@@ -39,15 +46,24 @@ def survey_crs(crs: str | pyproj.CRS) -> pyproj.CRS:
 
 
 def use_grid_dir(grid_dir: str | os.PathLike | None) -> None:
-    """Add ``grid_dir`` to PROJ's data search path (once; it is process-wide in pyproj)."""
-    if grid_dir is None:
-        return
-    folder = Path(grid_dir).resolve()
-    if not folder.is_dir():
-        raise CRSError(f"proj_grid_dir={grid_dir} is not a folder: pass the folder that holds "
-                       f"the PROJ grid files (for BNG: {OS_GRIDS[0]} and {OS_GRIDS[1]})")
-    if str(folder) not in pyproj.datadir.get_data_dir().split(os.pathsep):
-        pyproj.datadir.append_data_dir(str(folder))
+    """Put ``grid_dir`` (if given) and then the packaged grids on PROJ's data search path.
+
+    The path is process-wide in pyproj and PROJ takes the first file of a name it finds, so a
+    user's folder goes before the packaged one, which always stays last.
+    """
+    dirs = pyproj.datadir.get_data_dir().split(os.pathsep)
+    packaged = str(PACKAGED_GRID_DIR)
+    if packaged not in dirs and PACKAGED_GRID_DIR.is_dir():
+        dirs.append(packaged)
+    if grid_dir is not None:
+        folder = Path(grid_dir).resolve()
+        if not folder.is_dir():
+            raise CRSError(f"proj_grid_dir={grid_dir} is not a folder: pass the folder that holds "
+                           f"the PROJ grid files (for BNG: {OS_GRIDS[0]} and {OS_GRIDS[1]})")
+        if str(folder) not in dirs:
+            dirs.insert(dirs.index(packaged) if packaged in dirs else len(dirs), str(folder))
+    if os.pathsep.join(dirs) != pyproj.datadir.get_data_dir():
+        pyproj.datadir.set_data_dir(os.pathsep.join(dirs))
 
 
 def _label(crs: pyproj.CRS) -> str:

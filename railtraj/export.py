@@ -16,7 +16,13 @@ import numpy as np
 from railtraj.control import control_residuals
 from railtraj.data import Trajectory
 from railtraj.errors import CRSError
-from railtraj.io.outputs import write_anchors_csv, write_json, write_offsets_csv, write_ties_csv
+from railtraj.io.outputs import (
+    write_anchors_csv,
+    write_json,
+    write_offsets_csv,
+    write_ties_csv,
+    write_trajectory_tum,
+)
 from railtraj.io.trajectory_csv import write_trajectory_csv
 from railtraj.pipeline import PipelineResult, qc_figures
 
@@ -71,6 +77,7 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
     t0 = time.perf_counter()
     for run_id, traj in result.corrected.items():
         write_trajectory_csv(out_dir / "trajectories" / f"{run_id}.csv", traj)
+        write_trajectory_tum(out_dir / "trajectories" / f"{run_id}.tum", traj)
     write_offsets_csv(out_dir / "offsets.csv", result.offsets)
     write_ties_csv(out_dir / "ties.csv", result.ties)
     notes: list[str] = list(result.notes)

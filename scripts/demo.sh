@@ -4,9 +4,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-# The Ordnance Survey grids (needed for ETRS89 anchors) are not redistributed with railtraj; use
-# the team's shared copy when it is there, unless the user already points at their own.
-if [ -z "${RAILTRAJ_PROJ_GRID_DIR:-}" ] && [ -d ../shared/data/proj ]; then
-  export RAILTRAJ_PROJ_GRID_DIR="$(cd ../shared/data/proj && pwd)"
-fi
+# The Ordnance Survey grids for ETRS89 anchors ship with railtraj (railtraj/grids/).
 exec .venv/bin/railtraj "$@"

@@ -1,5 +1,6 @@
-"""The output files of SPEC.md (offsets.csv, ties.csv, anchors.csv, metrics.json), written
-atomically, and readers for the CSVs so tests and tools can check what was written.
+"""The output files of SPEC.md (offsets.csv, ties.csv, anchors.csv, metrics.json and the TUM
+copy of each trajectory), written atomically, and readers for the CSVs so tests and tools can
+check what was written.
 
 Tables are formatted column by column with numpy (no per-row Python formatting). Missing values
 (a tile pair with no reliable match) are written as ``nan``. Text cells are quoted only if they
@@ -15,8 +16,10 @@ from functools import reduce
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from railtraj.data import Ties, TileOffset
+from railtraj.data import Ties, TileOffset, Trajectory
+from railtraj.geo import body_to_world_matrices
 from railtraj.io.atomic import atomic_write
 from railtraj.io.trajectory_csv import read_text_columns, to_float
 
@@ -24,6 +27,7 @@ OFFSET_COLUMNS = ("run_a", "run_b", "tile_a", "tile_b", "dx", "dy", "dz", "sd_x"
                   "inliers", "status")
 TIE_COLUMNS = ("run_a", "run_b", "time_a", "time_b", "xa", "ya", "za", "xb", "yb", "zb", "weight")
 ANCHOR_COLUMNS = ("run_id", "time", "x", "y", "z", "lat", "lon", "h_ell", "sd_x", "sd_y", "sd_z")
+TUM_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
 #: printf format per numeric column; text columns are absent. Metres to 1 micrometre, times to
 #: 1 ns, latitude/longitude to 1e-9 degree (0.1 mm).
 _FMT = {"dx": "%.6f", "dy": "%.6f", "dz": "%.6f", "sd_x": "%.6f", "sd_y": "%.6f", "sd_z": "%.6f",
@@ -93,6 +97,21 @@ def write_anchors_csv(path: str | os.PathLike, rows: dict[str, np.ndarray]) -> N
     if len(lengths) > 1:
         raise ValueError(f"anchors: columns have different lengths {sorted(lengths)}")
     _write_table(path, {c: np.atleast_1d(rows[c]) for c in ANCHOR_COLUMNS})
+
+
+def body_to_map_quaternions(rpy_deg: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (qx, qy, qz, qw), qw >= 0, rotating body vectors (x forward,
+    y right, z down) into the map frame (east, north, up): the same M @ R as georeferencing."""
+    return Rotation.from_matrix(body_to_world_matrices(rpy_deg)).as_quat(canonical=True)
+
+
+def write_trajectory_tum(path: str | os.PathLike, traj: Trajectory) -> None:
+    """OUT/trajectories/<run_id>.tum: ``time x y z qx qy qz qw`` per epoch, space-separated, for
+    evo and other SLAM tools; positions in the survey CRS, orientation body -> map."""
+    table = np.column_stack([traj.time, traj.xyz, body_to_map_quaternions(traj.rpy)])
+    fmt = ["%.9f"] + ["%.6f"] * 3 + ["%.9f"] * 4
+    with atomic_write(path) as f:
+        np.savetxt(f, table, fmt=fmt, delimiter=" ", header=" ".join(TUM_COLUMNS), comments="# ")
 
 
 def _plain(obj):

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pyproj
@@ -14,60 +13,88 @@ import pytest
 from railtraj import crs
 from railtraj.errors import CRSError
 
-GRID_DIR = Path("/work/shared/data/proj")
-HAVE_GRIDS = all((GRID_DIR / g).is_file() for g in crs.OS_GRIDS)
-needs_grids = pytest.mark.skipif(
-    not HAVE_GRIDS, reason=f"Ordnance Survey grids {crs.OS_GRIDS} not found in {GRID_DIR}")
-
 #: BNG easting, northing, ODN height across England (London, Norfolk, Cornwall, Cumbria).
 ENGLAND = np.array([[530000.0, 180000.0, 10.0], [620000.0, 300000.0, 30.0],
                     [170000.0, 50000.0, 100.0], [330000.0, 520000.0, 250.0]])
 
 
-@needs_grids
 def test_bng_points_round_trip_below_1_mm():
-    lat, lon, h = crs.to_etrs89(ENGLAND, "EPSG:27700", GRID_DIR)
-    back = crs.from_geographic(lat, lon, h, "EPSG:27700", GRID_DIR)
+    lat, lon, h = crs.to_etrs89(ENGLAND, "EPSG:27700")
+    back = crs.from_geographic(lat, lon, h, "EPSG:27700")
     assert np.abs(back - ENGLAND).max() < 1e-3
 
 
-@needs_grids
 def test_known_point_and_geoid_separation_in_england():
-    lat, lon, h = crs.to_etrs89(ENGLAND, "EPSG:27700", GRID_DIR)
+    lat, lon, h = crs.to_etrs89(ENGLAND, "EPSG:27700")
     # 530000, 180000 is by Trafalgar Square, London.
     assert abs(lat[0] - 51.504) < 2e-3 and abs(lon[0] - (-0.128)) < 2e-3
     separation = h - ENGLAND[:, 2]
     assert ((separation > 44.0) & (separation < 54.0)).all(), separation
 
 
-@needs_grids
 def test_2d_bng_is_promoted_to_bng_plus_odn():
     assert crs.survey_crs("EPSG:27700").to_epsg() == 7405
-    a = np.column_stack(crs.to_etrs89(ENGLAND, "EPSG:27700", GRID_DIR))
-    b = np.column_stack(crs.to_etrs89(ENGLAND, "EPSG:7405", GRID_DIR))
+    a = np.column_stack(crs.to_etrs89(ENGLAND, "EPSG:27700"))
+    b = np.column_stack(crs.to_etrs89(ENGLAND, "EPSG:7405"))
     np.testing.assert_array_equal(a, b)
-    tr = crs.etrs89_transformer("EPSG:27700", GRID_DIR)
+    tr = crs.etrs89_transformer("EPSG:27700")
     assert "OSGB36 to ETRS89" in tr.description and "ODN height" in tr.description
 
 
-@needs_grids
 def test_point_outside_the_grid_is_a_crs_error():
     with pytest.raises(CRSError, match="outside"):
-        crs.to_etrs89([[-3.0e6, 180000.0, 10.0]], "EPSG:27700", GRID_DIR)
+        crs.to_etrs89([[-3.0e6, 180000.0, 10.0]], "EPSG:27700")
+
+
+def _fresh_python(code: str, tmp_path) -> str:
+    """Run ``code`` in a new interpreter (pyproj's search path is process-wide), PROJ offline."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("PROJ_DATA", "PROJ_LIB", "RAILTRAJ_PROJ_GRID_DIR")}
+    env.update(PROJ_NETWORK="OFF", PROJ_USER_WRITABLE_DIRECTORY=str(tmp_path / "proj-user"))
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=120, check=True).stdout
+
+
+def test_packaged_grids_are_used_without_grid_dir(tmp_path):
+    assert all((crs.PACKAGED_GRID_DIR / g).is_file() for g in crs.OS_GRIDS)
+    out = _fresh_python("from railtraj import crs\n"
+                        "lat, lon, h = crs.to_etrs89([[530000.0, 180000.0, 10.0]])\n"
+                        "print(lat[0], lon[0], h[0])\n", tmp_path)
+    lat, lon, h = map(float, out.split())
+    assert abs(lat - 51.504) < 2e-3 and abs(lon + 0.128) < 2e-3 and 44.0 < h - 10.0 < 54.0
 
 
 def test_missing_grids_raise_crs_error_in_a_fresh_process(tmp_path):
-    """append_data_dir is process-wide, so the no-grid case runs in its own interpreter."""
-    env = {k: v for k, v in os.environ.items() if k not in ("PROJ_DATA", "PROJ_LIB")}
-    env.update(PROJ_NETWORK="OFF", PROJ_USER_WRITABLE_DIRECTORY=str(tmp_path))
-    code = ("from railtraj import crs\n"
+    """Without the packaged grids (pointed at an empty folder) and no grid_dir, PROJ refuses."""
+    (tmp_path / "empty").mkdir()
+    code = ("import pathlib\n"
+            "from railtraj import crs\n"
             "from railtraj.errors import CRSError\n"
+            f"crs.PACKAGED_GRID_DIR = pathlib.Path({str(tmp_path / 'empty')!r})\n"
             "try:\n    crs.etrs89_transformer('EPSG:27700')\n"
             "except CRSError as e:\n    print('CRSError:', e)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                         timeout=120, check=True).stdout
+    out = _fresh_python(code, tmp_path)
     assert out.startswith("CRSError: cannot transform EPSG:7405 to ETRS89 accurately"), out
     assert "uk_os_OSTN15_NTv2_OSGBtoETRS.tif" in out and "proj_grid_dir=" in out
+
+
+def test_grid_dir_overrides_and_precedes_the_packaged_grids(tmp_path):
+    """A user's folder works on its own and is searched before the packaged one."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for g in crs.OS_GRIDS:
+        (mine / g).symlink_to(crs.PACKAGED_GRID_DIR / g)
+    (tmp_path / "empty").mkdir()
+    code = ("import os, pathlib, pyproj\n"
+            "from railtraj import crs\n"
+            f"crs.PACKAGED_GRID_DIR = pathlib.Path({str(tmp_path / 'empty')!r})\n"
+            "crs.use_grid_dir(None)\n"
+            f"lat, lon, h = crs.to_etrs89([[530000.0, 180000.0, 10.0]], grid_dir={str(mine)!r})\n"
+            "print(h[0])\n"
+            "print(pyproj.datadir.get_data_dir())\n")
+    h, search = _fresh_python(code, tmp_path).splitlines()
+    assert 44.0 < float(h) - 10.0 < 54.0
+    assert search.split(os.pathsep)[-2:] == [str(mine.resolve()), str(tmp_path / "empty")]
 
 
 def test_grid_dir_that_is_not_a_folder(tmp_path):
