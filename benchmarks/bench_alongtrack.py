@@ -19,6 +19,7 @@ import argparse
 import logging
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,15 +27,33 @@ import numpy as np
 from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
 from railtraj.plugins import registry
 from railtraj.sim import generate, load_truth
+from railtraj.sim.scenarios import Scenario, get_scenario
 from railtraj.sim.score import offset_errors, position_error, score_trajectories, tie_errors
 
 
-def survey_for(scenario: str, seed: int, size: float) -> Path:
+def survey_for(scenario: str, seed: int, size: float, vary: tuple[str, ...] = ()) -> Path:
     cache = Path(os.environ.get("RAILTRAJ_CACHE", Path.home() / ".cache" / "railtraj"))
-    root = cache / "bench" / (f"{scenario}-{seed}" + ("" if size == 1.0 else f"-x{size}"))
+    name = f"{scenario}-{seed}" + ("" if size == 1.0 else f"-x{size}") + "".join(f"-{v}" for v in vary)
+    root = cache / "bench" / name
     if not (root / "survey").is_dir():
-        generate(scenario, root, seed=seed, size=size, overwrite=True)
+        generate(varied(get_scenario(scenario), vary), root, seed=seed, size=size, overwrite=True)
     return root / "survey"
+
+
+def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
+    """The scenario with ``key=value`` changes: a field of its geometry or scanner, or ``speed``
+    (every run's speed times the value), to try surveys the catalogue does not hold."""
+    for item in vary:
+        key, value = item.split("=")
+        if key == "speed":
+            scn = replace(scn, runs=tuple(replace(r, speed=r.speed * float(value)) for r in scn.runs))
+        elif hasattr(scn.geometry, key):
+            scn = replace(scn, geometry=replace(scn.geometry, **{key: type(getattr(scn.geometry, key) or 0.0)(value)}))
+        elif hasattr(scn.scanner, key):
+            scn = replace(scn, scanner=replace(scn.scanner, **{key: type(getattr(scn.scanner, key))(value)}))
+        else:
+            raise SystemExit(f"--vary {item}: not a geometry or scanner field, nor speed")
+    return scn
 
 
 def averaging_bound_gap(truth, before, after, chainage) -> float:
@@ -106,6 +125,7 @@ def main() -> None:
     ap.add_argument("--optimizer", default="spline")
     ap.add_argument("--pipeline", default="global", choices=["global", "multirun"])
     ap.add_argument("--size", type=float, default=1.0)
+    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry or scanner field, or speed (factor)")
     ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -114,7 +134,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for scenario in args.scenarios:
         for seed in args.seeds:
-            survey = survey_for(scenario, seed, args.size)
+            survey = survey_for(scenario, seed, args.size, tuple(args.vary))
             reg = registry()
             stages = Stages(reg.create("detector", "iss"), reg.create("descriptor", "none"),
                             reg.create("matcher", "pair_voting"), reg.create("optimizer", args.optimizer),

@@ -334,11 +334,17 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
     return replace(o, d=d, cov=fit_cov, status="ok", ties=Ties.empty(o.run_a, o.run_b), info=info)
 
 
+def _velocity(traj: Trajectory, t: float) -> np.ndarray:
+    """Horizontal velocity (m/s) at time ``t``, over half a second."""
+    xyz, _ = traj.interpolate(np.clip([t - 0.25, t + 0.25], *traj.span))
+    v = (xyz[1] - xyz[0]) / 0.5
+    v[2] = 0.0
+    return v
+
+
 def _direction(traj: Trajectory, t: float) -> np.ndarray:
     """Unit horizontal direction of travel at time ``t``."""
-    xyz, _ = traj.interpolate(np.clip([t - 0.25, t + 0.25], *traj.span))
-    v = xyz[1] - xyz[0]
-    v[2] = 0.0
+    v = _velocity(traj, t)
     n = np.linalg.norm(v)
     return v / n if n > 0 else np.array([1.0, 0.0, 0.0])
 
@@ -351,7 +357,6 @@ def _travelled(traj: Trajectory) -> np.ndarray:
 
 def _time_after_shift(traj: Trajectory, t: float, move: np.ndarray) -> float:
     """When the run passed the point ``move`` away (along the track) from where it was at ``t``."""
-    xyz, _ = traj.interpolate(np.clip([t - 0.25, t + 0.25], *traj.span))
-    v = (xyz[1] - xyz[0]) / 0.5
-    speed2 = float(v[:2] @ v[:2])
+    v = _velocity(traj, t)
+    speed2 = float(v @ v)
     return float(np.clip(t + (move[:2] @ v[:2]) / speed2, *traj.span)) if speed2 > 0 else t
