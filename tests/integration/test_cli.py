@@ -15,7 +15,6 @@ import pytest
 from railtraj.io.trajectory_csv import read_trajectory_csv
 
 pytestmark = pytest.mark.slow
-GRIDS = Path(__file__).resolve().parents[3] / "shared" / "data" / "proj"
 
 
 def railtraj(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -34,8 +33,7 @@ def survey(tmp_path_factory) -> Path:
 
 def test_job_writes_every_spec_output(survey, tmp_path):
     out = tmp_path / "out"
-    extra = [f"proj_grid_dir={GRIDS}"] if GRIDS.is_dir() else []
-    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", f"truth_dir={survey.parent / 'truth'}", *extra)
+    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", f"truth_dir={survey.parent / 'truth'}")
     assert res.returncode == 0, res.stderr[-3000:]
     runs = sorted(p.name for p in survey.iterdir() if p.is_dir())
     for run in runs:
@@ -50,16 +48,20 @@ def test_job_writes_every_spec_output(survey, tmp_path):
     assert header == "run_a,run_b,tile_a,tile_b,dx,dy,dz,sd_x,sd_y,sd_z,inliers,status"
     assert (out / "ties.csv").read_text().startswith("run_a,run_b,time_a,time_b,xa,ya,za,xb,yb,zb,weight")
     assert (out / "config.yaml").exists() and (out / "report.html").stat().st_size > 1000
-    if GRIDS.is_dir():   # anchors need the OS grids; the simulated survey lies in London (E 530000 N 180000)
-        from railtraj.io.outputs import read_anchors_csv
+    # anchors with the packaged OS grids; the simulated survey lies in London (E 530000 N 180000)
+    from railtraj.io.outputs import read_anchors_csv
 
-        assert metrics["counts"]["anchors"] > 0
-        assert (out / "anchors.csv").read_text().startswith("run_id,time,x,y,z,lat,lon,h_ell,sd_x,sd_y,sd_z")
-        anchors = read_anchors_csv(out / "anchors.csv")
-        assert np.all(np.abs(np.asarray(anchors["lat"], float) - 51.5) < 0.1)
-        assert np.all(np.abs(np.asarray(anchors["lon"], float) + 0.13) < 0.1)
-        h_minus_height = np.asarray(anchors["h_ell"], float) - np.asarray(anchors["z"], float)
-        assert np.all((44 < h_minus_height) & (h_minus_height < 48))   # OSGM15 geoid in London
+    assert metrics["counts"]["anchors"] > 0
+    assert (out / "anchors.csv").read_text().startswith("run_id,time,x,y,z,lat,lon,h_ell,sd_x,sd_y,sd_z")
+    anchors = read_anchors_csv(out / "anchors.csv")
+    assert np.all(np.abs(np.asarray(anchors["lat"], float) - 51.5) < 0.1)
+    assert np.all(np.abs(np.asarray(anchors["lon"], float) + 0.13) < 0.1)
+    h_minus_height = np.asarray(anchors["h_ell"], float) - np.asarray(anchors["z"], float)
+    assert np.all((44 < h_minus_height) & (h_minus_height < 48))   # OSGM15 geoid in London
+    for run in runs:   # evo-compatible trajectories next to the CSV, one line per epoch
+        rows = [r for r in (out / "trajectories" / f"{run}.tum").read_text().splitlines() if not r.startswith("#")]
+        assert len(rows) == len(
+            read_trajectory_csv(survey / run / "trajectory.csv", run).time)
     assert not list(out.rglob("*.part")), "temporary files left behind"
 
 
