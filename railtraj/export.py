@@ -91,7 +91,7 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
         metrics["config"] = {k: config.get(k) for k in ("detector", "descriptor", "matcher", "optimizer", "pipeline")}
     write_json(out_dir / "metrics.json", metrics)
     from railtraj.report.html import write_report
-    write_report(out_dir / "report.html", result, metrics)
+    write_report(out_dir / "report.html", result, metrics, truth_dir=truth_dir)
     return metrics
 
 
@@ -143,6 +143,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         "adjustment": result.adjustment,
         "control": control_residuals(result.control, result.trajectories, result.corrected),
         "notes": notes,
+        "resume": result.resume,
     }
     if truth_dir is not None and truth_dir.exists():
         metrics["truth"] = score_against_truth(result.trajectories, result.corrected, truth_dir, result.offsets)

@@ -17,3 +17,17 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install -q -e ".[test]" -e plugins/railtraj-example
   echo "$want" > "$stamp"
 fi
+# headless Chromium renders report.html in tests/integration/test_report_browser.py
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1 \
+   && ! command -v google-chrome >/dev/null 2>&1 && [ -z "${RAILTRAJ_CHROMIUM:-}" ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing chromium for the report's browser test (apt-get)..."
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1 \
+      || { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends chromium >/dev/null; } \
+      || echo "setup: could not install chromium; the report browser test will fail" >&2
+  else
+    echo "setup: no chromium found and apt-get needs root: install chromium (or set RAILTRAJ_CHROMIUM)" \
+         "for tests/integration/test_report_browser.py" >&2
+  fi
+fi
