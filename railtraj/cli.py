@@ -9,14 +9,17 @@ printed as one line (``railtraj: error: ...``) and the exit status is 2.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import sys
+import time
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import CompactHydraException
+from hydra.experimental.callback import Callback
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
@@ -99,6 +102,45 @@ def _hydra_main(cfg: DictConfig) -> None:
         _failures.append(str(exc))
         log.error("%s", exc)
         print(f"railtraj: error: {exc}", file=sys.stderr)
+
+
+class SweepSummary(Callback):
+    """Hydra callback (registered in :mod:`railtraj.config`): after the last job of a sweep,
+    write summary.csv, summary.md and summary.png into the sweep folder (:mod:`railtraj.sweep`).
+
+    It times each job itself and remembers the job folders, because the sweep folder's name may
+    hold ``${now:...}``, which would resolve to another time at the end of the sweep.
+    """
+
+    def __init__(self) -> None:
+        self._started: list[float] = []
+        self._jobs: list = []
+        self._sweep_dir: Path | None = None
+
+    def on_job_start(self, config: DictConfig, **kwargs) -> None:
+        self._started.append(time.perf_counter())
+
+    def on_job_end(self, config: DictConfig, job_return, **kwargs) -> None:
+        from railtraj.sweep import Job
+
+        wall = time.perf_counter() - self._started.pop() if self._started else math.nan
+        out = str(config.hydra.runtime.output_dir)
+        subdir = str(OmegaConf.select(config, "hydra.sweep.subdir", default="") or "")
+        self._sweep_dir = Path(out[: -len(subdir)] if subdir and out.endswith(subdir) else out)
+        self._jobs.append(Job(Path(out), subdir, wall))
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        from railtraj.sweep import write_sweep_summary
+
+        sweep_dir = self._sweep_dir or Path(to_absolute_path(str(config.hydra.sweep.dir)))
+        if not sweep_dir.is_dir():
+            return
+        try:
+            rows = write_sweep_summary(sweep_dir, self._jobs)
+        except (OSError, ValueError, KeyError) as exc:  # the jobs' outputs stand without a summary
+            log.error("sweep summary not written: %s", exc)
+            return
+        log.info("sweep summary of %d jobs: %s", len(rows), sweep_dir / "summary.md")
 
 
 #: Hydra prints a traceback and exits 1 unless this is "1"; then it raises and main() reports

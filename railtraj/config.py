@@ -97,6 +97,8 @@ HYDRA_OVERRIDES: dict[str, Any] = {
     "sweep": {"dir": "${out_dir}", "subdir": "${hydra.job.override_dirname}"},
     "job": {"config": {"override_dirname": {
         "exclude_keys": ["survey_dir", "out_dir", "proj_grid_dir", "truth_dir"]}}},
+    # after a sweep: summary.csv, summary.md, summary.png in the sweep folder (railtraj.sweep)
+    "callbacks": {"sweep_summary": {"_target_": "railtraj.cli.SweepSummary"}},
 }
 
 
