@@ -52,6 +52,17 @@ def build_stages(cfg: DictConfig):
     return Stages(**built)
 
 
+def resume_cache(cfg: DictConfig, stages, out_dir: Path):
+    """The cache of finished tiles and pairs in ``out_dir`` (read only when ``resume=true``)."""
+    from railtraj.pipeline import detect_tile, match_pair
+    from railtraj.resume import CACHE_DIR, Cache, source_digest
+
+    configs = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("detector", "descriptor", "matcher")}
+    code = {"tiles": source_digest([stages.detector, stages.descriptor], [detect_tile]),
+            "pairs": source_digest([stages.matcher], [match_pair])}
+    return Cache(out_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume))
+
+
 def run_job(cfg: DictConfig, out_dir: Path) -> None:
     """Run one configured job and write its outputs to ``out_dir``."""
     from railtraj.alongtrack import AlongTrackOptions
@@ -82,7 +93,7 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         from railtraj.crs import etrs89_transformer
         etrs89_transformer(cfg.crs, grid_dir)
-    result = run_pipeline(survey_dir, stages, options)
+    result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
     # written once the inputs passed, so a run that fails on bad input keeps the previous one
     with atomic_write(out_dir / "config.yaml") as fh:

@@ -56,6 +56,7 @@ class RunConfig:
     write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)
     threads: int = 0                   # Open3D threads; 0: all cores
+    resume: bool = True                # reuse finished tiles/pairs of an earlier run in out_dir
     detector: Any = MISSING
     descriptor: Any = MISSING
     matcher: Any = MISSING

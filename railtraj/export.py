@@ -143,6 +143,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         "adjustment": result.adjustment,
         "control": control_residuals(result.control, result.trajectories, result.corrected),
         "notes": notes,
+        "resume": result.resume,
     }
     if truth_dir is not None and truth_dir.exists():
         metrics["truth"] = score_against_truth(result.trajectories, result.corrected, truth_dir, result.offsets)

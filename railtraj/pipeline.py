@@ -35,6 +35,7 @@ from railtraj.io.survey import (
     unparsed_crs_note,
 )
 from railtraj.qc import c2c_distances, distance_stats, tie_residuals
+from railtraj.resume import Cache, cached_map
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +92,7 @@ class PipelineResult:
     control: ControlObservations = field(default_factory=ControlObservations.empty)
     adjustment: dict[str, Any] = field(default_factory=dict)  # the optimizer's diagnostics
     notes: list[str] = field(default_factory=list)  # warnings a surveyor must see in metrics/report
+    resume: dict[str, int] = field(default_factory=dict)  # tiles/pairs reused from an earlier run
 
     @property
     def offsets(self) -> list[TileOffset]:
@@ -98,8 +100,12 @@ class PipelineResult:
 
 
 def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
-                 progress=None) -> PipelineResult:
-    """Run the whole method on a survey folder and return everything the writers need."""
+                 progress=None, cache: Cache | None = None) -> PipelineResult:
+    """Run the whole method on a survey folder and return everything the writers need.
+
+    With a ``cache`` (:mod:`railtraj.resume`), tiles and pairs finished by an earlier run are
+    reused and every newly finished one is stored at once.
+    """
     clock: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = open_survey(survey_dir)
@@ -116,15 +122,24 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     tiles = sorted({(p.run_a, p.tile_a.path) for p in pairs} | {(p.run_b, p.tile_b.path) for p in pairs})
-    detected = stages.executor.map(detect_tile, [(run, path, trajectories[run], stages) for run, path in tiles],
-                                   progress=progress or _log_progress("detected keypoints in", "tiles"))
+    tile_keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
+    detected, tiles_reused = cached_map(
+        stages.executor, detect_tile, [(run, path, trajectories[run], stages) for run, path in tiles],
+        tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
     keypoints = dict(zip(tiles, detected, strict=True))
     clock["detect"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    tile_key = dict(zip(tiles, tile_keys, strict=True))
+    pair_keys = [cache.pair_key(p, tile_key[(p.run_a, p.tile_a.path)], tile_key[(p.run_b, p.tile_b.path)],
+                                {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
+                 if cache else "" for p in pairs]
     jobs = [(pair, keypoints[(pair.run_a, pair.tile_a.path)], keypoints[(pair.run_b, pair.tile_b.path)],
              stages, options) for pair in pairs]
-    results = stages.executor.map(match_pair, jobs, progress=progress or _log_progress("matched", "tile pairs"))
+    results, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
+                                       progress=progress or _log_progress("matched", "tile pairs"))
+    if cache:
+        cache.prune()
     clock["match"] = time.perf_counter() - t0
     log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in results), len(results))
 
@@ -144,7 +159,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, [r.offset for r in results], control, notes)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
-    return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes)
+    return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
+                          resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],
