@@ -43,7 +43,8 @@ class Chainage:
         """Unit plan direction of travel of the reference run at chainage ``s``."""
         k = int(np.clip(np.searchsorted(self.distance, s), 1, len(self.distance) - 1))
         lo = int(np.searchsorted(self.distance, self.distance[k] - 2.0))
-        hi = int(min(len(self.distance) - 1, np.searchsorted(self.distance, self.distance[k] + 2.0)))
+        hi = int(np.searchsorted(self.distance, self.distance[k] + 2.0))
+        hi = min(len(self.distance) - 1, hi)
         lo, hi = min(lo, k - 1), max(hi, k)
         v = self.xy[hi] - self.xy[lo]
         n = np.linalg.norm(v)

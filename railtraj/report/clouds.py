@@ -65,7 +65,8 @@ def cross_section(points: np.ndarray, centre: np.ndarray, direction: np.ndarray,
 def slab_width(points: np.ndarray, centre: np.ndarray, direction: np.ndarray,
                want: int = 800, widths=(0.1, 0.2, 0.4, 0.8, 1.6)) -> float:
     """The thinnest slab half-width from ``widths`` holding ``want`` points (else the widest)."""
-    along = np.abs((points[:, :2] - np.asarray(centre, float)[:2]) @ np.asarray(direction, float)[:2])
+    rel = points[:, :2] - np.asarray(centre, float)[:2]
+    along = np.abs(rel @ np.asarray(direction, float)[:2])
     for w in widths:
         if np.count_nonzero(along <= w) >= want:
             return w

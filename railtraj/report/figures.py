@@ -39,7 +39,8 @@ def verdict_strip(sections: list[Section], places: list[PairPlace], chainage: Ch
     rows = sorted({s.runs for s in sections})
     fig = _figure(9, 0.5 + 0.45 * len(rows))
     ax = fig.subplots()
-    spacing = np.median(np.diff(sorted({round(p.chainage, 1) for p in places}))) if len(places) > 1 else 10.0
+    at = sorted({round(p.chainage, 1) for p in places})
+    spacing = np.median(np.diff(at)) if len(at) > 1 else 10.0
     half = 0.5 * float(spacing if np.isfinite(spacing) and spacing > 0 else 10.0)
     for k, runs in enumerate(rows):
         for s in (s for s in sections if s.runs == runs):
@@ -68,7 +69,8 @@ def corrections(result, chainage: Chainage) -> bytes:
         sd = after.sd[order] if after.sd is not None else np.zeros_like(corr)
         for k, (lab, col) in enumerate(ENU):
             ax.plot(s[order], corr[:, k], color=col, lw=1, label=lab)
-            ax.fill_between(s[order], corr[:, k] - sd[:, k], corr[:, k] + sd[:, k], color=col, alpha=0.2, lw=0)
+            ax.fill_between(s[order], corr[:, k] - sd[:, k], corr[:, k] + sd[:, k], color=col,
+                            alpha=0.2, lw=0)
         ax.set_title(run_id, fontsize=9, loc="left")
         ax.set_ylabel("correction [m]", fontsize=8)
         ax.grid(alpha=0.3)
@@ -80,7 +82,7 @@ def corrections(result, chainage: Chainage) -> bytes:
 
 
 def plan_map(result, places: list[PairPlace], clouds: list[PairClouds]) -> bytes:
-    """Plan view: the reference-side tile of every pair coloured by its C2C median, before and after."""
+    """Plan view: run a's tile of every pair coloured by its C2C median, before and after."""
     headers = {(r, t.path.name): t for r, run in result.survey.runs.items() for t in run.tiles}
     by_pair = {c.index: c for c in clouds}
     cells: dict[tuple[str, str], tuple[float, float]] = {}
@@ -95,7 +97,7 @@ def plan_map(result, places: list[PairPlace], clouds: list[PairClouds]) -> bytes
     norm = Normalize(0.0, vmax)
     xy = np.concatenate([t.xyz[:, :2] for t in result.trajectories.values()])
     dx, dy = np.ptp(xy, axis=0) + 1.0
-    wide = dx >= dy  # a tunnel running east-west: the two maps one above the other
+    wide = dx >= 1.5 * dy  # a tunnel running east-west: the two maps one above the other
     fig = _figure(10, float(np.clip(10 * dy / dx, 1.5, 4.5)) * 2 + 1 if wide else 4.5)
     axes = fig.subplots(2, 1) if wide else fig.subplots(1, 2)
     for k, (ax, title) in enumerate(zip(axes, ("before", "after"), strict=True)):
@@ -105,8 +107,8 @@ def plan_map(result, places: list[PairPlace], clouds: list[PairClouds]) -> bytes
             h = headers.get(key)
             if h is None or not np.isfinite(values[k]):
                 continue
-            ax.add_patch(Rectangle(tuple(h.mins[:2]), *(h.maxs[:2] - h.mins[:2]), facecolor=_cmap()(norm(values[k])),
-                                   edgecolor="white", lw=0.4))
+            ax.add_patch(Rectangle(tuple(h.mins[:2]), *(h.maxs[:2] - h.mins[:2]),
+                                   facecolor=_cmap()(norm(values[k])), edgecolor="white", lw=0.4))
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(f"C2C median per tile, {title}", fontsize=9)
         if k == 1 or not wide:
@@ -116,7 +118,8 @@ def plan_map(result, places: list[PairPlace], clouds: list[PairClouds]) -> bytes
     for ax in axes:
         ax.set_ylabel("northing [m]", fontsize=8)
     from matplotlib.cm import ScalarMappable
-    fig.colorbar(ScalarMappable(norm=norm, cmap=_cmap()), ax=axes, label="C2C median [m]", shrink=0.8)
+    fig.colorbar(ScalarMappable(norm=norm, cmap=_cmap()), ax=axes, label="C2C median [m]",
+                 shrink=0.8)
     return _png(fig)
 
 
@@ -131,12 +134,14 @@ def c2c_histograms(clouds: list[PairClouds]) -> bytes:
     after = np.concatenate([c.c2c_after for c in clouds]) if clouds else np.zeros(0)
     fig = _figure(9, 3)
     ax = fig.subplots()
-    top = max(np.percentile(np.concatenate([before, after]), 99) if len(before) + len(after) else 0.1, 0.02)
+    both = np.concatenate([before, after])
+    top = max(np.percentile(both, 99) if len(both) else 0.1, 0.02)
     bins = np.linspace(0.0, top, 80)
     for d, lab, col in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
         if len(d):
             ax.hist(d, bins=bins, histtype="step", lw=1.5, color=col,
-                    label=f"{lab}: median {np.median(d) * 1000:.0f} mm, p95 {np.percentile(d, 95) * 1000:.0f} mm")
+                    label=f"{lab}: median {np.median(d) * 1000:.0f} mm, "
+                          f"p95 {np.percentile(d, 95) * 1000:.0f} mm")
             ax.axvline(np.median(d), color=col, lw=0.8, ls="--")
     ax.set_xlabel("distance from run b's point to run a's nearest point [m]", fontsize=8)
     ax.set_ylabel("points", fontsize=8)
@@ -148,7 +153,7 @@ def c2c_histograms(clouds: list[PairClouds]) -> bytes:
 
 def cross_sections(picks: list[tuple[str, PairClouds]], places: list[PairPlace], chainage: Chainage,
                    result) -> bytes:
-    """For each picked pair, a slice across the track through both runs' points, before and after."""
+    """Per picked pair, a slice across the track through both runs' points, before and after."""
     fig = _figure(10, 3.4 * len(picks))
     axes = fig.subplots(len(picks), 2, squeeze=False, sharey="row")
     for row, (label, c) in zip(axes, picks, strict=True):
@@ -156,16 +161,18 @@ def cross_sections(picks: list[tuple[str, PairClouds]], places: list[PairPlace],
         direction = chainage.direction(p.chainage)
         width = slab_width(c.a_before, p.xy, direction)
         o = result.pairs[c.index].offset
-        for ax, (title, a, b, med) in zip(row, (("before", c.a_before, c.b_before, c.median_before),
-                                                ("after", c.a_after, c.b_after, c.median_after)), strict=True):
+        views = (("before", c.a_before, c.b_before, c.median_before),
+                 ("after", c.a_after, c.b_after, c.median_after))
+        for ax, (title, a, b, med) in zip(row, views, strict=True):
             for pts, name, col in ((a, o.run_a, "tab:blue"), (b, o.run_b, "tab:red")):
                 xs = cross_section(pts, p.xy, direction, width)
                 ax.scatter(xs[:, 0], xs[:, 1], s=1.5, color=col, label=name, linewidths=0)
-            ax.set_title(f"{label}: {p.tile_a} ({p.runs}) at {p.chainage:.0f} m, {title}; "
-                         f"C2C median {med * 1000:.0f} mm", fontsize=8)
+            where = f"{label}: {p.tile_a} ({p.runs}) at {p.chainage:.0f} m" * (title == "before")
+            where += "\n"
+            ax.set_title(f"{where}{title}: C2C median {med * 1000:.0f} mm", fontsize=8, loc="left")
             ax.set_aspect("equal", adjustable="datalim")
-            ax.set_xlabel(f"across track, right of {chainage.run_id}'s direction [m] (slice {2 * width:.1f} m)",
-                          fontsize=7)
+            ax.set_xlabel(f"across track, right of {chainage.run_id}'s direction [m] "
+                          f"(slice {2 * width:.1f} m)", fontsize=7)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
         row[0].set_ylabel("height [m]", fontsize=8)
@@ -182,7 +189,8 @@ def truth_errors(errors: dict[str, dict[str, np.ndarray]], ref: str) -> bytes:
         e = errors[run_id]
         col = f"C{k}"
         for ax, key in zip(axes, ("h", "v"), strict=True):
-            ax.plot(e["chainage"], e[f"before_{key}"], color=col, lw=0.8, ls=":", label=f"{run_id} before")
+            ax.plot(e["chainage"], e[f"before_{key}"], color=col, lw=0.8, ls=":",
+                    label=f"{run_id} before")
             ax.plot(e["chainage"], e[f"after_{key}"], color=col, lw=1.2, label=f"{run_id} after")
     axes[0].set_ylabel("horizontal error [m]", fontsize=8)
     axes[1].set_ylabel("|vertical error| [m]", fontsize=8)

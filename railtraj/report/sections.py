@@ -29,7 +29,7 @@ COLOURS = {ALIGNED: "#2ca02c", WEAK: "#ffbf00", UNRESOLVED: "#ff7f0e", REFUSED: 
 
 #: why a pair with this status gave no (or only a partial) constraint, in a surveyor's words
 REASONS = {
-    "degenerate": "offset found across and up, but not to 1 cm along the track (no distinct features)",
+    "degenerate": "offset found across and up, not to 1 cm along the track (no distinct features)",
     "ambiguous": "an alias one rib or sleeper spacing away fits almost as well",
     "no_consensus": "too few keypoint pairs agree on any translation",
     "no_overlap": "the two clouds share too little surface at any offset",

@@ -18,8 +18,8 @@ def table(rows: list[dict[str, Any]], cls: str = "") -> str:
         return "<p class='none'>none</p>"
     head = "".join(f"<th>{html.escape(str(k))}</th>" for k in rows[0])
     digits = [_digits(str(k)) for k in rows[0]]
-    body = "".join("<tr>" + "".join(_cell(v, n) for v, n in zip(r.values(), digits, strict=False)) + "</tr>"
-                   for r in rows)
+    body = "".join("<tr>" + "".join(_cell(v, n) for v, n in zip(r.values(), digits, strict=False))
+                   + "</tr>" for r in rows)
     return f"<table class='{cls}'><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
@@ -30,7 +30,8 @@ def _digits(header: str) -> int:
 
 def _cell(v: Any, digits: int = 3) -> str:
     if isinstance(v, Badge):
-        return f"<td><span class='badge' style='background:{v.colour}'>{html.escape(v.text)}</span></td>"
+        style = f"background:{v.colour}"
+        return f"<td><span class='badge' style='{style}'>{html.escape(v.text)}</span></td>"
     return f"<td>{html.escape(fmt(v, digits))}</td>"
 
 

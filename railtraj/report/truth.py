@@ -15,7 +15,8 @@ from railtraj.report.chainage import Chainage
 MAX_POINTS = 3000
 
 
-def errors_along_chainage(result, truth_dir: Path, chainage: Chainage) -> dict[str, dict[str, np.ndarray]]:
+def errors_along_chainage(result, truth_dir: Path,
+                          chainage: Chainage) -> dict[str, dict[str, np.ndarray]]:
     """Per run: chainage and horizontal / vertical error of the input and corrected trajectories."""
     from railtraj.sim import load_truth
     from railtraj.sim.score import position_error
@@ -28,7 +29,8 @@ def errors_along_chainage(result, truth_dir: Path, chainage: Chainage) -> dict[s
         after, _ = position_error(true, result.corrected[run_id])
         s = chainage.of_trajectory(result.trajectories[run_id])[ok]
         order = np.argsort(s, kind="stable")[:: max(1, int(ok.sum()) // MAX_POINTS)]
-        out[run_id] = {"chainage": s[order],
-                       "before_h": np.linalg.norm(before[order, :2], axis=1), "before_v": np.abs(before[order, 2]),
-                       "after_h": np.linalg.norm(after[order, :2], axis=1), "after_v": np.abs(after[order, 2])}
+        out[run_id] = {"chainage": s[order]}
+        for name, err in (("before", before[order]), ("after", after[order])):
+            out[run_id][f"{name}_h"] = np.linalg.norm(err[:, :2], axis=1)
+            out[run_id][f"{name}_v"] = np.abs(err[:, 2])
     return out
