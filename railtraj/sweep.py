@@ -41,7 +41,8 @@ class Job:
 def job_row(job: Job) -> dict[str, Any]:
     """The summary row of one job, from its metrics.json."""
     row: dict[str, Any] = dict.fromkeys(COLUMNS, math.nan)
-    row.update(job=job.folder.name, overrides=job.overrides or "(defaults)", wall_time_s=job.wall_time_s)
+    row.update(job=job.folder.name, overrides=job.overrides or "(defaults)",
+               wall_time_s=job.wall_time_s)
     path = job.folder / "metrics.json"
     if not path.is_file():
         row["status"] = "failed"
@@ -57,11 +58,13 @@ def job_row(job: Job) -> dict[str, Any]:
     if truth:
         before, after = truth["before"].get("overall", {}), truth["after"].get("overall", {})
         pairs = [p.get("rms_h") for p in truth["after"].get("consistency", {}).values()]
-        row.update(truth_rms_h_before_m=_num(before.get("rms_h")), truth_rms_h_after_m=_num(after.get("rms_h")),
+        row.update(truth_rms_h_before_m=_num(before.get("rms_h")),
+                   truth_rms_h_after_m=_num(after.get("rms_h")),
                    truth_rms_v_after_m=_num(after.get("rms_v")),
                    truth_interrun_rms_h_after_m=max((_num(p) for p in pairs), default=math.nan))
     if math.isnan(row["wall_time_s"]):  # not measured by the callback: the job's own stage clocks
-        row["wall_time_s"] = sum(v for v in m.get("seconds", {}).values() if isinstance(v, (int, float)))
+        clocks = m.get("seconds", {}).values()
+        row["wall_time_s"] = sum(v for v in clocks if isinstance(v, (int, float)))
     return row
 
 
@@ -104,19 +107,29 @@ def _accuracy(rows: list[dict[str, Any]]) -> tuple[str, str]:
 
 
 def markdown(rows: list[dict[str, Any]]) -> str:
-    """summary.md: one row per job, most accurate first, figures in millimetres."""
+    """summary.md: one row per job, most accurate first, figures in millimetres (truth columns
+    only when some job has a truth)."""
     key, label = _accuracy(rows)
     ordered = sorted(rows, key=lambda r: (math.isnan(r[key]), r[key]))
-    head = ("| overrides | status | tile pairs ok | C2C median before -> after [mm] | tie RMS after [mm] "
-            "| truth RMS h before -> after [mm] | truth RMS v after [mm] | worst inter-run RMS h [mm] "
-            "| wall time [s] |")
-    lines = [f"# Sweep summary ({len(rows)} jobs, sorted by {label})", "", head, "|" + "---|" * 9]
+    truth = any(not math.isnan(r["truth_rms_h_after_m"]) for r in rows)
+    cols = ["overrides", "status", "tile pairs ok", "C2C median before -> after [mm]",
+            "tie RMS after [mm]"]
+    if truth:
+        cols += ["truth RMS h before -> after [mm]", "truth RMS v after [mm]",
+                 "worst inter-run RMS h [mm]"]
+    cols.append("wall time [s]")
+    lines = [f"# Sweep summary ({len(rows)} jobs, sorted by {label})", "",
+             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in ordered:
-        lines.append(f"| `{r['overrides']}` | {r['status']} | {_int(r['tile_pairs_ok'])} / {_int(r['tile_pairs'])} "
-                     f"| {_mm(r['c2c_median_before_m'])} -> {_mm(r['c2c_median_after_m'])} | {_mm(r['tie_rms_after_m'])} "
-                     f"| {_mm(r['truth_rms_h_before_m'])} -> {_mm(r['truth_rms_h_after_m'])} "
-                     f"| {_mm(r['truth_rms_v_after_m'])} | {_mm(r['truth_interrun_rms_h_after_m'])} "
-                     f"| {_sec(r['wall_time_s'])} |")
+        cells = [f"`{r['overrides']}`", r["status"],
+                 f"{_int(r['tile_pairs_ok'])} / {_int(r['tile_pairs'])}",
+                 f"{_mm(r['c2c_median_before_m'])} -> {_mm(r['c2c_median_after_m'])}",
+                 _mm(r["tie_rms_after_m"])]
+        if truth:
+            cells += [f"{_mm(r['truth_rms_h_before_m'])} -> {_mm(r['truth_rms_h_after_m'])}",
+                      _mm(r["truth_rms_v_after_m"]), _mm(r["truth_interrun_rms_h_after_m"])]
+        cells.append(_sec(r["wall_time_s"]))
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -143,7 +156,8 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig = Figure(figsize=(7, 4.5))
     FigureCanvasAgg(fig)
     ax = fig.subplots()
-    done = [r for r in rows if r["status"] == "ok" and not math.isnan(r[key]) and not math.isnan(r["wall_time_s"])]
+    done = [r for r in rows if r["status"] == "ok" and not math.isnan(r[key])
+            and not math.isnan(r["wall_time_s"])]
     for r in done:
         ax.scatter(r["wall_time_s"], r[key] * 1000, color="tab:blue", s=25)
         ax.annotate(r["overrides"], (r["wall_time_s"], r[key] * 1000), fontsize=7, xytext=(4, 3),

@@ -33,8 +33,8 @@ def find_chromium() -> str:
         path = shutil.which(name) if name else None
         if path:
             return path
-    pytest.fail("no Chromium found: run scripts/setup.sh as root (apt-get install chromium), or set "
-                "RAILTRAJ_CHROMIUM=/path/to/chrome")
+    pytest.fail("no Chromium found: run scripts/setup.sh as root (apt-get install chromium), "
+                "or set RAILTRAJ_CHROMIUM=/path/to/chrome")
 
 
 class Browser:
@@ -44,7 +44,8 @@ class Browser:
         to_chrome, self._out = os.pipe()
         self._in, from_chrome = os.pipe()
         # the child's ends must become fds 3 and 4: move them clear of those numbers first
-        child_in, child_out = (fcntl.fcntl(fd, fcntl.F_DUPFD, 100) for fd in (to_chrome, from_chrome))
+        child_in, child_out = (fcntl.fcntl(fd, fcntl.F_DUPFD, 100)
+                               for fd in (to_chrome, from_chrome))
         os.close(to_chrome)
         os.close(from_chrome)
 
@@ -61,7 +62,8 @@ class Browser:
         os.close(child_out)
         self._buf, self._id, self.events = b"", 0, []
         target = self.call("Target.createTarget", url="about:blank")["targetId"]
-        self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        attached = self.call("Target.attachToTarget", targetId=target, flatten=True)
+        self.session = attached["sessionId"]
         for method in ("Page.enable", "Runtime.enable", "Log.enable"):
             self.call(method, session=True)
         self.call("Emulation.setDeviceMetricsOverride", session=True, width=width, height=height,
@@ -111,14 +113,17 @@ class Browser:
             if m == "Runtime.exceptionThrown":
                 out.append(p["exceptionDetails"].get("text", "exception"))
             elif m == "Runtime.consoleAPICalled" and p.get("type") in ("error", "assert"):
-                out.append(" ".join(str(a.get("value", a.get("description", ""))) for a in p["args"]))
+                args = (a.get("value", a.get("description", "")) for a in p["args"])
+                out.append(" ".join(str(a) for a in args))
             elif m == "Log.entryAdded" and p["entry"].get("level") == "error":
-                out.append(f"{p['entry'].get('source')}: {p['entry'].get('text')} {p['entry'].get('url', '')}")
+                entry = p["entry"]
+                out.append(f"{entry.get('source')}: {entry.get('text')} {entry.get('url', '')}")
         return out
 
     def screenshot(self, path: Path, height: int) -> None:
         width = self.evaluate("document.documentElement.scrollWidth")
-        shot = self.call("Page.captureScreenshot", session=True, format="png", captureBeyondViewport=True,
+        shot = self.call("Page.captureScreenshot", session=True, format="png",
+                         captureBeyondViewport=True,
                          clip={"x": 0, "y": 0, "width": width, "height": height, "scale": 1})
         path.write_bytes(base64.b64decode(shot["data"]))
 
@@ -138,14 +143,16 @@ class Browser:
 IMAGES = "Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth])"
 
 
-def check_page(binary: str, page: Path, profile: Path, shot: Path | None = None) -> tuple[list, list[str]]:
+def check_page(binary: str, page: Path, profile: Path,
+               shot: Path | None = None) -> tuple[list, list[str]]:
     """Images (alt, complete, naturalWidth) and page errors of ``page``; optionally a screenshot."""
     browser = Browser(binary, profile)
     try:
         browser.open(page.resolve().as_uri())
         images = browser.evaluate(IMAGES)
         if shot is not None:
-            browser.screenshot(shot, height=min(2400, browser.evaluate("document.body.scrollHeight")))
+            height = browser.evaluate("document.body.scrollHeight")
+            browser.screenshot(shot, height=min(2400, height))
         return images, browser.errors()
     finally:
         browser.close()
@@ -173,7 +180,8 @@ def test_report_renders_in_chromium(tmp_path):
     report = out / "report.html"
     text = report.read_text()
     for heading in ("Summary", "Verdict per tunnel section", "Correction applied to each run",
-                    "Misalignment between runs", "Refused and ambiguous tile pairs", "Control points",
+                    "Misalignment between runs", "Refused and ambiguous tile pairs",
+                    "Control points",
                     "Against the simulator's truth", "Configuration", "Timings"):
         assert heading in text, heading
     assert "http://" not in text and "https://" not in text   # self-contained

@@ -17,8 +17,9 @@ def test_sweep_writes_a_summary(tmp_path):
 
     sim = generate("control", tmp_path / "sim", seed=0, size=0.2)
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "railtraj.cli", "-m", "optimizer=spline,median", f"survey_dir={sim.survey_dir}",
-           f"out_dir={sweep}", f"truth_dir={Path(sim.survey_dir).parent / 'truth'}"]
+    cmd = [sys.executable, "-m", "railtraj.cli", "-m", "optimizer=spline,median",
+           f"survey_dir={sim.survey_dir}", f"out_dir={sweep}",
+           f"truth_dir={Path(sim.survey_dir).parent / 'truth'}"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     with open(sweep / "summary.csv", newline="") as fh:

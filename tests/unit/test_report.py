@@ -24,16 +24,17 @@ from railtraj.report.sections import (
 
 
 def test_verdicts_follow_the_final_status():
-    assert [verdict(s) for s in ("ok", "degenerate", "ambiguous", "no_consensus", "no_overlap")] == \
-        [ALIGNED, WEAK, UNRESOLVED, REFUSED, REFUSED]
+    statuses = ("ok", "degenerate", "ambiguous", "no_consensus", "no_overlap")
+    assert [verdict(s) for s in statuses] == [ALIGNED, WEAK, UNRESOLVED, REFUSED, REFUSED]
 
 
 def test_sections_merge_consecutive_pairs_per_run_pair():
     def place(k, runs, s, v):
         return PairPlace(k, runs, "t", "t", np.zeros(2), s, "", v)
 
-    places = [place(0, "a / b", 30, ALIGNED), place(1, "a / b", 10, ALIGNED), place(2, "a / b", 50, REFUSED),
-              place(3, "a / c", 10, ALIGNED), place(4, "a / b", 70, ALIGNED)]
+    places = [place(0, "a / b", 30, ALIGNED), place(1, "a / b", 10, ALIGNED),
+              place(2, "a / b", 50, REFUSED), place(3, "a / c", 10, ALIGNED),
+              place(4, "a / b", 70, ALIGNED)]
     got = [(s.runs, s.start, s.end, s.pairs, s.verdict) for s in sections(places)]
     assert got == [("a / b", 10, 30, [1, 0], ALIGNED), ("a / b", 50, 50, [2], REFUSED),
                    ("a / b", 70, 70, [4], ALIGNED), ("a / c", 10, 10, [3], ALIGNED)]
@@ -44,14 +45,16 @@ def test_chainage_runs_along_the_reference(make_trajectory):
     ch = Chainage(traj)
     assert abs(ch.length - 30.0) < 0.5
     assert abs(ch.at(traj.xyz[150, :2])[0] - 15.0) < 0.2
-    assert np.allclose(ch.direction(15.0), [np.sin(np.radians(30)), np.cos(np.radians(30))], atol=0.05)
+    heading = np.radians(30)
+    assert np.allclose(ch.direction(15.0), [np.sin(heading), np.cos(heading)], atol=0.05)
 
 
 def _result(make_trajectory, make_tile):
     trajs = {r: make_trajectory(n=300, seed=k, run_id=r) for k, r in enumerate("ab")}
     corrected = {r: replace(t, xyz=t.xyz + [0.01, -0.02, 0.005]) for r, t in trajs.items()}
     origin = trajs["a"].xyz[100]
-    tiles = [make_tile(n=3000, seed=k, origin=origin, size=5.0, run_id=r, name="t.laz") for k, r in enumerate("ab")]
+    tiles = [make_tile(n=3000, seed=k, origin=origin, size=5.0, run_id=r, name="t.laz")
+             for k, r in enumerate("ab")]
     ok = TileOffset("a", "b", "t.laz", "t.laz", d=np.array([0.01, 0.0, 0.0]), cov=np.eye(3) * 1e-4,
                     inliers=40, status="ok", info={"time_a": float(trajs["a"].time[100])})
     bad = TileOffset("a", "b", "u.laz", "u.laz", status="no_consensus", info={"keypoints_a": 3})
@@ -59,7 +62,8 @@ def _result(make_trajectory, make_tile):
              SimpleNamespace(offset=bad, sample_a=tiles[0].subset(np.zeros(0, int)),
                              sample_b=tiles[1].subset(np.zeros(0, int)), seconds={})]
     survey = SimpleNamespace(root="mem", runs={r: SimpleNamespace(tiles=[]) for r in "ab"})
-    return SimpleNamespace(survey=survey, options=SimpleNamespace(mode="global", reference_run=None),
+    options = SimpleNamespace(mode="global", reference_run=None)
+    return SimpleNamespace(survey=survey, options=options,
                            trajectories=trajs, corrected=corrected, pairs=pairs)
 
 
@@ -68,7 +72,8 @@ def test_report_renders_without_truth_or_control(tmp_path, make_trajectory, make
     empty = distance_stats(np.zeros(0))
     metrics = {"counts": {"runs": 2, "tiles": 2, "tile_pairs": 2, "ties": 0, "anchors": 0},
                "qc": {"tie_residual_before_m": empty, "tie_residual_after_m": empty,
-                      "c2c_before_m": distance_stats(np.ones(3)), "c2c_after_m": distance_stats(np.ones(3))},
+                      "c2c_before_m": distance_stats(np.ones(3)),
+                      "c2c_after_m": distance_stats(np.ones(3))},
                "seconds": {"match": 1.0}, "notes": ["a warning"], "adjustment": {}, "control": [],
                "config": {"detector": {"name": "iss"}}}
     path = tmp_path / "report.html"
