@@ -113,6 +113,10 @@ def test_absolute_error_follows_the_sd_weighted_average_of_the_runs():
     # the posterior sd is honest: the runs' common error is within 3 sd almost everywhere
     sd = out["run_a"].sd_at(a.time_at(s))
     assert np.mean(np.abs(got) < 3 * sd + 0.005) > 0.95
+    # ... and never above the input's (information only narrows it): GNSS-good ends keep theirs
+    for run in (a, b):
+        assert np.all(out[run.run_id].sd <= run.traj.sd + 1e-12)
+        assert np.max(out[run.run_id].sd[run.s < TUNNEL[0] - 10]) <= 0.015 + 1e-12
 
 
 def _with_wrong_ties(clean, rng, share: float = 0.3):
