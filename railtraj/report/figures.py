@@ -17,7 +17,7 @@ from matplotlib.patches import Patch, Rectangle
 
 from railtraj.report.chainage import Chainage
 from railtraj.report.clouds import PairClouds, cross_section, slab_width
-from railtraj.report.sections import COLOURS, VERDICTS, PairPlace, Section
+from railtraj.report.sections import COLOURS, REFUSED, VERDICTS, PairPlace, Section
 
 ENU = (("E", "tab:blue"), ("N", "tab:orange"), ("U", "tab:green"))
 
@@ -200,5 +200,31 @@ def truth_errors(errors: dict[str, dict[str, np.ndarray]], ref: str) -> bytes:
         ax.grid(alpha=0.3, which="both")
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=7, ncol=len(errors))
+    fig.tight_layout()
+    return _png(fig)
+
+
+def offsets_along(result, places: list[PairPlace], chainage: Chainage) -> bytes:
+    """The matcher's offset of every tile pair (p_a = p_b + d) against chainage, one panel per
+    pair of runs; hollow markers: weak or unresolved pairs (only partly used); refused pairs,
+    whose numbers mean nothing, are left out."""
+    runs = sorted({p.runs for p in places})
+    fig = _figure(9, 0.6 + 1.9 * len(runs))
+    axes = fig.subplots(len(runs), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, name in zip(axes, runs, strict=True):
+        chain = [p for p in places if p.runs == name and p.verdict != REFUSED]
+        s = np.array([p.chainage for p in chain])
+        d = np.array([result.pairs[p.index].offset.d for p in chain]).reshape(-1, 3)
+        ok = np.array([p.status == "ok" for p in chain], bool)
+        for k, (lab, col) in enumerate(zip(("dx (E)", "dy (N)", "dz (U)"), ("C0", "C1", "C2"),
+                                           strict=True)):
+            ax.plot(s[ok], d[ok, k], "o", ms=4, color=col, label=lab)
+            ax.plot(s[~ok], d[~ok, k], "o", ms=4, mfc="none", color=col)
+        ax.set_title(name, fontsize=9, loc="left")
+        ax.set_ylabel("offset [m]", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    axes[0].legend(ncol=3, fontsize=7, loc="upper right")
+    axes[-1].set_xlabel(f"chainage along {chainage.run_id} [m]", fontsize=8)
     fig.tight_layout()
     return _png(fig)

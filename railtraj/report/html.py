@@ -17,6 +17,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from railtraj.errors import RailtrajError
 from railtraj.io.atomic import atomic_write
 from railtraj.report import figures, rows
 from railtraj.report.chainage import Chainage, reference_run
@@ -118,7 +119,11 @@ class Page:
             return head + "<p class='none'>no point samples</p>"
         plan = img(figures.plan_map(self.result, self.places, self.clouds), "plan view of C2C")
         hist = img(figures.c2c_histograms(self.clouds), "C2C histograms")
-        out = (f"{head}<h3>Plan view</h3>{plan}<h3>C2C distances, all tile pairs</h3>{hist}")
+        along = img(figures.offsets_along(self.result, self.places, self.chainage), "offsets")
+        out = (f"{head}<h3>Plan view</h3>{plan}<h3>C2C distances, all tile pairs</h3>{hist}"
+               "<h3>Tile-pair offsets along the track</h3><p>What the matcher measured per tile "
+               "pair (run b's points move by d onto run a's); hollow: weak or unresolved; "
+               f"refused pairs are left out.</p>{along}")
         picks = pick_pairs(self.clouds)
         if picks:
             xs = figures.cross_sections(picks, self.places, self.chainage, self.result)
@@ -150,7 +155,7 @@ class Page:
                 errors = errors_along_chainage(self.result, truth_dir, self.chainage)
                 png = figures.truth_errors(errors, self.chainage.run_id)
                 plot = img(png, "error along chainage")
-            except Exception as exc:  # the optional truth plot must not cost the whole report
+            except (RailtrajError, OSError, ValueError, KeyError) as exc:  # optional plot
                 log.warning("truth plot skipped: %s", exc)
         return ("<h2>Against the simulator's truth</h2><p>Position error of each run's trajectory, "
                 f"input (dotted) and corrected (solid).</p>{plot}"
