@@ -34,7 +34,6 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from railtraj.data import Ties, TileOffset, Trajectory
 
@@ -182,6 +181,9 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     times = (o.info.get("time_a", np.nan), o.info.get("time_b", np.nan))
     if not np.isfinite(times).all() or o.run_b not in trajectories or o.run_a not in trajectories:
         return None
+    # scipy.signal takes ~1 s to import: not at `railtraj --help`
+    from scipy.signal import find_peaks
+
     fitness = np.asarray(prof["fitness"], float)
     if not len(fitness) or fitness.max() < options.min_fitness:
         return NO_EVIDENCE  # the pair's clouds hardly meet at any shift

@@ -23,7 +23,6 @@ import numpy as np
 import scipy.linalg as la
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
-from scipy.stats import chi2
 
 from railtraj.adjust.observations import Block
 
@@ -195,6 +194,8 @@ def solve(blocks: list[Block], n: int, confidence: float = 0.999, max_iterations
           mu_step: float = 2.0) -> Solution:
     """Least squares over all blocks, with GNC-TLS on the robust ones (weights 0..1)."""
     robust = [b.robust and len(b) > 0 for b in blocks]
+    from scipy.stats import chi2  # scipy.stats takes ~0.7 s to import: not at `railtraj --help`
+
     bound = [chi2.ppf(confidence, np.maximum(b.dof, 1)) for b in blocks]
     gnc = [np.ones(len(b)) for b in blocks]
     mu, it, perm = None, 0, None
