@@ -57,7 +57,7 @@ class AlongTrackOptions:
     min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
     max_candidates: int = 40
-    max_pair_sd: float = 0.02      # m: a pair whose own along-track fit is vaguer is never fixed
+    max_pair_sd: float = 0.015     # m: a vaguer pair is never fixed (5 cm, the most an ok pair may be off, is 3.3 sd)
 
 
 @dataclass(frozen=True)
