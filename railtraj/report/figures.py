@@ -71,14 +71,8 @@ def corrections(result, chainage: Chainage) -> bytes:
             ax.plot(s[order], corr[:, k], color=col, lw=1, label=lab)
             ax.fill_between(s[order], corr[:, k] - sd[:, k], corr[:, k] + sd[:, k], color=col,
                             alpha=0.2, lw=0)
-        ax.set_title(run_id, fontsize=9, loc="left")
-        ax.set_ylabel("correction [m]", fontsize=8)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
-    axes[0].legend(ncol=3, fontsize=7, loc="upper right")
-    axes[-1].set_xlabel(f"chainage along {chainage.run_id} [m]", fontsize=8)
-    fig.tight_layout()
-    return _png(fig)
+        _panel(ax, run_id, "correction [m]")
+    return _chainage_figure(fig, axes, chainage.run_id)
 
 
 def plan_map(result, places: list[PairPlace], clouds: list[PairClouds]) -> bytes:
@@ -220,11 +214,21 @@ def offsets_along(result, places: list[PairPlace], chainage: Chainage) -> bytes:
                                            strict=True)):
             ax.plot(s[ok], d[ok, k], "o", ms=4, color=col, label=lab)
             ax.plot(s[~ok], d[~ok, k], "o", ms=4, mfc="none", color=col)
-        ax.set_title(name, fontsize=9, loc="left")
-        ax.set_ylabel("offset [m]", fontsize=8)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
+        _panel(ax, name, "offset [m]")
+    return _chainage_figure(fig, axes, chainage.run_id)
+
+
+def _panel(ax, title: str, ylabel: str) -> None:
+    """One panel of a stack of plots against chainage: title left, light grid, small ticks."""
+    ax.set_title(title, fontsize=9, loc="left")
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.tick_params(labelsize=7)
+
+
+def _chainage_figure(fig, axes, run_id: str) -> bytes:
+    """The stack finished (legend on top, chainage axis below) as PNG bytes."""
     axes[0].legend(ncol=3, fontsize=7, loc="upper right")
-    axes[-1].set_xlabel(f"chainage along {chainage.run_id} [m]", fontsize=8)
+    axes[-1].set_xlabel(f"chainage along {run_id} [m]", fontsize=8)
     fig.tight_layout()
     return _png(fig)
