@@ -66,11 +66,13 @@ def resume_cache(cfg: DictConfig, stages, out_dir: Path):
 def run_job(cfg: DictConfig, out_dir: Path) -> None:
     """Run one configured job and write its outputs to ``out_dir``."""
     from railtraj.alongtrack import AlongTrackOptions
+    from railtraj.crs import frame_transformer, resolve_sbet_crs
     from railtraj.export import write_outputs
     from railtraj.io.atomic import atomic_write
     from railtraj.pipeline import PipelineOptions, run_pipeline
 
     anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
+    sbet_crs = resolve_sbet_crs(cfg.sbet_crs, cfg.crs)  # so does a bad sbet_crs
     if cfg.threads:
         from railtraj.o3d import o3d
         o3d.utility.set_max_threads(int(cfg.threads))
@@ -88,11 +90,11 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     options = PipelineOptions(mode=pipe.name, pairs=pipe.pairs, reference_run=pipe.reference_run,
                               tile=pipe.tile, max_pairs=pipe.max_pairs, min_overlap_m=pipe.min_overlap_m,
                               max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir,
+                              sbet_crs=sbet_crs,
                               alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)))
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
-        from railtraj.crs import etrs89_transformer
-        etrs89_transformer(cfg.crs, grid_dir)
+        frame_transformer(cfg.crs, sbet_crs, grid_dir)
     result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
     # written once the inputs passed, so a run that fails on bad input keeps the previous one

@@ -51,7 +51,8 @@ class RunConfig:
     survey_dir: str | None = None
     out_dir: str = "outputs/${now:%Y-%m-%d_%H-%M-%S_%f}"
     crs: str = "EPSG:27700"            # survey CRS of trajectories and tiles (heights ODN)
-    proj_grid_dir: str | None = None  # folder with the OSTN15/OSGM15 grids for ETRS89 anchors
+    sbet_crs: str | None = None       # frame of SBET and anchors; None: ETRS89 (BNG) / WGS 84
+    proj_grid_dir: str | None = None  # folder of PROJ grids (OSTN15/OSGM15 ship with railtraj)
     anchors: str = "auto"              # auto: write anchors.csv when the grids are found; true; false
     write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)

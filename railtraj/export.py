@@ -32,6 +32,13 @@ log = logging.getLogger(__name__)
 ANCHOR_INTERVAL_S = 0.5
 
 
+def anchors_crs(result: PipelineResult) -> str:
+    """The frame of anchors.csv's lat, lon, h_ell: the SBET's (``sbet_crs``, or its default)."""
+    from railtraj.crs import default_sbet_crs
+
+    return result.options.sbet_crs or default_sbet_crs(result.options.crs)
+
+
 def anchor_rows(result: PipelineResult) -> dict[str, np.ndarray]:
     """Anchor observations: corrected positions (with posterior sd) of each run at the times
     where it was tied to another run, by a tie feature or a tile-pair offset."""
@@ -102,10 +109,10 @@ def _write_anchors(result: PipelineResult, out_dir: Path, mode: str, notes: list
     if len(rows["time"]) == 0:
         notes.append("anchors.csv not written: no tile pair was matched, so no anchor observations")
         return 0
-    from railtraj.crs import to_etrs89
+    from railtraj.crs import to_geographic
     try:
-        lat, lon, h = to_etrs89(np.column_stack([rows["x"], rows["y"], rows["z"]]), result.options.crs,
-                                result.options.grid_dir)
+        lat, lon, h = to_geographic(np.column_stack([rows["x"], rows["y"], rows["z"]]),
+                                    result.options.crs, result.options.grid_dir, anchors_crs(result))
     except CRSError as exc:
         if mode.lower() in ("true", "yes", "on", "required"):
             raise
@@ -129,6 +136,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
     metrics: dict[str, Any] = {
         "survey": str(result.survey.root),
         "pipeline": result.options.mode,
+        "anchors_crs": anchors_crs(result),  # lat, lon, h_ell of anchors.csv (= the SBET frame)
         "counts": {
             "runs": len(result.survey.runs),
             "tiles": sum(len(r.tiles) for r in result.survey.runs.values()),

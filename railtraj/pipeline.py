@@ -67,6 +67,7 @@ class PipelineOptions:
     max_misalignment_m: float = 3.0
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
+    sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
 
 
@@ -109,7 +110,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     clock: dict[str, float] = {}
     t0 = time.perf_counter()
     survey = open_survey(survey_dir)
-    trajectories = {r: survey.load_trajectory(r, crs=options.crs, grid_dir=options.grid_dir)
+    trajectories = {r: survey.load_trajectory(r, crs=options.crs, grid_dir=options.grid_dir,
+                                              sbet_crs=options.sbet_crs)
                     for r in survey.runs}
     check_survey(survey, trajectories, options.crs)
     survey_notes = [n for n in [unparsed_crs_note(survey, options.crs)] if n]

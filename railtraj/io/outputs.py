@@ -89,7 +89,11 @@ def write_ties_csv(path: str | os.PathLike, ties_list: list[Ties]) -> None:
 
 
 def write_anchors_csv(path: str | os.PathLike, rows: dict[str, np.ndarray]) -> None:
-    """OUT/anchors.csv from a dict of equal-length columns named as :data:`ANCHOR_COLUMNS`."""
+    """OUT/anchors.csv from a dict of equal-length columns named as :data:`ANCHOR_COLUMNS`.
+
+    x, y, z are in the survey CRS; lat, lon (degrees) and h_ell (m) in the SBET's frame
+    (``sbet_crs``: ETRS89 for a British survey, else WGS 84, unless given), which metrics.json
+    records as ``anchors_crs``, so POSPac takes them back in the frame it produced."""
     missing = [c for c in ANCHOR_COLUMNS if c not in rows]
     if missing:
         raise ValueError(f"anchors: missing column(s) {', '.join(missing)}")

@@ -1,8 +1,10 @@
 """Applanix SBET trajectories and SMRMSG accuracy files (POSPac output), read and written as-is.
 
 Both are headerless arrays of little-endian float64 records, so numpy structured dtypes read and
-write them byte for byte. Angles in the files are radians; latitude/longitude/height are taken as
-ETRS89 (EPSG:4937), which is what a UK post-processing run referenced to OS Net delivers.
+write them byte for byte. Angles in the files are radians; latitude/longitude/ellipsoidal height
+are in the frame of the GNSS processing, ``sbet_crs`` (a geographic 3-D CRS): by default ETRS89
+(EPSG:4937), what a UK post-processing run referenced to OS Net delivers, for a British survey
+CRS, and WGS 84 (EPSG:4979) for any other (:func:`railtraj.crs.default_sbet_crs`).
 
 Converting to a :class:`Trajectory` projects positions to the survey CRS and turns SBET's *true*
 heading into the *grid* heading SPEC.md asks for, using the projection's meridian convergence
@@ -18,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from railtraj.crs import from_geographic, grid_convergence, to_etrs89
+from railtraj.crs import from_geographic, grid_convergence, to_geographic
 from railtraj.data import Trajectory
 from railtraj.errors import FormatError, TrajectoryError
 from railtraj.io.atomic import atomic_write
@@ -113,15 +115,16 @@ def smrmsg_sd_at(smrmsg: np.ndarray, times: np.ndarray) -> np.ndarray:
 
 def sbet_to_trajectory(records: np.ndarray, crs: str = "EPSG:27700",
                        grid_dir: str | os.PathLike | None = None,
-                       smrmsg: np.ndarray | None = None, run_id: str = "") -> Trajectory:
+                       smrmsg: np.ndarray | None = None, run_id: str = "",
+                       sbet_crs: str | None = None) -> Trajectory:
     """A SPEC trajectory from SBET records: survey-CRS positions, degrees, grid heading.
 
-    Positions go from ETRS89 (lat, lon, h_ell) to ``crs`` through :mod:`railtraj.crs` (which
-    refuses inaccurate transforms). Heading: ``grid = true - meridian convergence``, wrapped to
+    Positions go from ``sbet_crs`` (lat, lon, h_ell; None: the survey's default frame) to ``crs``
+    through :mod:`railtraj.crs` (which refuses inaccurate transforms). Heading: ``grid = true - meridian convergence``, wrapped to
     [0, 360). sd comes from ``smrmsg`` (east, north, down RMS) when given.
     """
     lat, lon = np.degrees(records["lat"]), np.degrees(records["lon"])
-    xyz = from_geographic(lat, lon, records["z"], crs, grid_dir)
+    xyz = from_geographic(lat, lon, records["z"], crs, grid_dir, sbet_crs)
     heading = np.mod(np.degrees(records["heading"]) - grid_convergence(lat, lon, crs), 360.0)
     rpy = np.column_stack([np.degrees(records["roll"]), np.degrees(records["pitch"]), heading])
     sd = None if smrmsg is None else smrmsg_sd_at(smrmsg, records["time"])
@@ -130,8 +133,10 @@ def sbet_to_trajectory(records: np.ndarray, crs: str = "EPSG:27700",
 
 def trajectory_to_sbet(traj: Trajectory, crs: str = "EPSG:27700",
                        grid_dir: str | os.PathLike | None = None,
-                       template: np.ndarray | None = None) -> np.ndarray:
-    """SBET records for ``traj`` (the inverse of :func:`sbet_to_trajectory`).
+                       template: np.ndarray | None = None,
+                       sbet_crs: str | None = None) -> np.ndarray:
+    """SBET records for ``traj`` in the frame ``sbet_crs`` (the inverse of
+    :func:`sbet_to_trajectory`).
 
     Time, position and attitude come from ``traj``. The other fields are copied from
     ``template`` (records with the same epochs) when given; otherwise the wander angle,
@@ -139,7 +144,7 @@ def trajectory_to_sbet(traj: Trajectory, crs: str = "EPSG:27700",
     positions in the wander frame with wander 0: vx north, vy west, vz up (the axes PDAL's
     reference SBET shows when its velocities are compared with its positions).
     """
-    lat, lon, h = to_etrs89(traj.xyz, crs, grid_dir)
+    lat, lon, h = to_geographic(traj.xyz, crs, grid_dir, sbet_crs)
     if template is not None:
         if len(template) != len(traj) or not np.array_equal(template["time"], traj.time):
             raise TrajectoryError(f"SBET template has {len(template)} records that do not match "

@@ -53,14 +53,16 @@ class Survey:
         return self.runs[run_id]
 
     def load_trajectory(self, run_id: str, crs: str = "EPSG:27700",
-                        grid_dir: str | os.PathLike | None = None) -> Trajectory:
-        """Read a run's trajectory.csv, or its trajectory.sbet converted to ``crs``."""
+                        grid_dir: str | os.PathLike | None = None,
+                        sbet_crs: str | None = None) -> Trajectory:
+        """Read a run's trajectory.csv, or its trajectory.sbet (in the frame ``sbet_crs``)
+        converted to ``crs``."""
         info = self.run(run_id)
         if info.trajectory_path.suffix == ".csv":
             return read_trajectory_csv(info.trajectory_path, run_id=run_id)
         smrmsg = None if info.smrmsg_path is None else read_smrmsg(info.smrmsg_path)
         return sbet_to_trajectory(read_sbet(info.trajectory_path), crs=crs, grid_dir=grid_dir,
-                                  smrmsg=smrmsg, run_id=run_id)
+                                  smrmsg=smrmsg, run_id=run_id, sbet_crs=sbet_crs)
 
 
 def _open_run(folder: Path) -> RunInfo:

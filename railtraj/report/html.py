@@ -80,7 +80,14 @@ class Page:
         return (f"<h1>railtraj QC report</h1><p>Survey <code>{html.escape(str(r.survey.root))}"
                 f"</code>, pipeline <b>{html.escape(r.options.mode)}</b>: {c['runs']} runs, "
                 f"{c['tiles']} tiles, {c['tile_pairs']} tile pairs, {c['ties']} ties, "
-                f"{c['anchors']} anchors.</p>{warn}")
+                f"{c['anchors']} anchors"
+                f"{self._anchors_frame()}.</p>{warn}")
+
+    def _anchors_frame(self) -> str:
+        frame = self.metrics.get("anchors_crs")
+        if not frame or not self.metrics["counts"]["anchors"]:
+            return ""
+        return f" (lat, lon, h_ell in <code>{html.escape(str(frame)[:40])}</code>)"
 
     def summary(self) -> str:
         qc = self.metrics["qc"]

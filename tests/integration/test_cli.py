@@ -52,6 +52,7 @@ def test_job_writes_every_spec_output(survey, tmp_path):
     from railtraj.io.outputs import read_anchors_csv
 
     assert metrics["counts"]["anchors"] > 0
+    assert metrics["anchors_crs"] == "EPSG:4937"   # British survey: anchors in ETRS89, as before
     assert (out / "anchors.csv").read_text().startswith("run_id,time,x,y,z,lat,lon,h_ell,sd_x,sd_y,sd_z")
     anchors = read_anchors_csv(out / "anchors.csv")
     assert np.all(np.abs(np.asarray(anchors["lat"], float) - 51.5) < 0.1)
