@@ -95,14 +95,19 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         frame_transformer(cfg.crs, sbet_crs, grid_dir)
-    result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    # written once the inputs passed, so a run that fails on bad input keeps the previous one
-    with atomic_write(out_dir / "config.yaml") as fh:
-        fh.write(OmegaConf.to_yaml(cfg, resolve=True))
-    write_outputs(result, out_dir, anchors=anchors, write_tiles=bool(cfg.write_tiles),
-                  executor=stages.executor, truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
-                  config=OmegaConf.to_container(cfg, resolve=True))
+    try:
+        result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        # written once the inputs passed, so a run that fails on bad input keeps the previous one
+        with atomic_write(out_dir / "config.yaml") as fh:
+            fh.write(OmegaConf.to_yaml(cfg, resolve=True))
+        write_outputs(result, out_dir, anchors=anchors, write_tiles=bool(cfg.write_tiles),
+                      executor=stages.executor,
+                      truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
+                      config=OmegaConf.to_container(cfg, resolve=True))
+    finally:
+        if hasattr(stages.executor, "close"):  # e.g. dask's LocalCluster: no worker outlives the job
+            stages.executor.close()
     log.info("outputs written to %s", out_dir)
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import inspect
 import logging
+import os
+import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -161,6 +163,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, [r.offset for r in results], control, notes)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
+    log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})
 
@@ -318,11 +321,29 @@ def _concat(parts: list[np.ndarray]) -> np.ndarray:
 
 
 def _log_progress(what: str, unit: str):
-    state = {"last": 0.0}
+    """The default progress callback of a long stage: a bar with counts, rate and ETA on stderr
+    when it is a terminal and not in CI (env ``CI`` set), else a log line every few seconds. The
+    last call logs the count and the stage's time either way, so the log keeps the timings."""
+    state: dict[str, Any] = {"start": time.perf_counter(), "last": 0.0, "bar": None}
+    interactive = sys.stderr.isatty() and not os.environ.get("CI")
 
     def report(done: int, total: int) -> None:
         now = time.perf_counter()
-        if done == total or now - state["last"] > 5.0:
+        if interactive:
+            if state["bar"] is None:
+                from tqdm import tqdm
+                from tqdm.contrib.logging import logging_redirect_tqdm
+
+                state["redirect"] = logging_redirect_tqdm()  # log lines print above the bar
+                state["redirect"].__enter__()
+                state["bar"] = tqdm(total=total, desc=what, unit=f" {unit}", dynamic_ncols=True)
+            state["bar"].update(done - state["bar"].n)
+            if done == total:
+                state["bar"].close()
+                state["redirect"].__exit__(None, None, None)
+        elif done < total and now - state["last"] > 5.0:
             state["last"] = now
             log.info("%s %d/%d %s", what, done, total, unit)
+        if done == total:
+            log.info("%s %d/%d %s in %.1f s", what, done, total, unit, now - state["start"])
     return report

@@ -63,7 +63,9 @@ class Executor(Protocol):
     """Maps a function over work items (tiles, tile pairs), serially or in parallel.
 
     ``fn`` and the items must be picklable for executors that use processes. Results come back in
-    the order of ``items``. ``progress(done, total)`` is called as items finish.
+    the order of ``items``. ``progress(done, total)`` is called as items finish. An executor that
+    holds resources (the ``dask`` cluster) may have a ``close()``; the CLI calls it when the job
+    ends, also on error.
     """
 
     def map(self, fn: Callable[[T], R], items: Iterable[T],

@@ -3,6 +3,7 @@
 #: Modules registered, in order, before any entry-point plugin.
 BUILTIN_PLUGINS: tuple[str, ...] = (
     "railtraj.builtins.executors",
+    "railtraj.builtins.dask_executor",
     "railtraj.builtins.identity",
     "railtraj.builtins.gtsam_optimizer",
     "railtraj.builtins.spline_optimizer",
