@@ -9,6 +9,7 @@ which one is broken.
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +24,10 @@ from railtraj.io.trajectory_csv import require_file
 
 BACKEND = laspy.LazBackend.LazrsParallel
 #: Errors laspy and lazrs raise on corrupt, truncated or foreign files (lazrs.LazrsError is a
-#: RuntimeError; a short uncompressed LAS gives a ValueError from numpy).
-_READ_ERRORS = (laspy.errors.LaspyException, RuntimeError, ValueError, OSError, EOFError)
+#: RuntimeError; a short uncompressed LAS gives a ValueError from numpy; a header cut short
+#: inside a field gives a struct.error; a corrupt record length a MemoryError).
+_READ_ERRORS = (laspy.errors.LaspyException, RuntimeError, ValueError, OSError, EOFError,
+                struct.error, MemoryError)
 #: GPS week seconds are below this; adjusted standard GPS time (GPS time - 1e9) is far above it.
 _WEEK_SECONDS = 604800.0
 
@@ -84,9 +87,34 @@ def _header_info(path: Path, h: laspy.LasHeader) -> TileHeader:
         crs=crs, crs_error=crs_error)
 
 
+def _check_record_counts(p: Path) -> None:
+    """Refuse a header whose (E)VLR or LAZ chunk count the file cannot hold: laspy would loop
+    over billions of empty records, and lazrs abort the process allocating a chunk table."""
+    size = p.stat().st_size
+    with open(p, "rb") as f:
+        head = f.read(247)
+        if head[:4] != b"LASF" or len(head) < 105:
+            return  # laspy names what is wrong with such a file
+        counts = [("VLRs", struct.unpack_from("<I", head, 100)[0], 54)]
+        if len(head) >= 247 and head[25] >= 4:
+            counts.append(("EVLRs", struct.unpack_from("<I", head, 243)[0], 60))
+        if head[104] & 0x80:  # compressed: the LAZ chunk table offset opens the point data
+            f.seek(struct.unpack_from("<I", head, 96)[0])
+            table = f.read(8)
+            offset = struct.unpack("<q", table)[0] if len(table) == 8 else -1
+            if 0 <= offset <= size - 8:
+                f.seek(offset + 4)
+                counts.append(("LAZ chunks", struct.unpack("<I", f.read(4))[0], 8))
+    for kind, n, record in counts:
+        if n * record > size:
+            raise _corrupt(p, ValueError(f"header says {n} {kind} but the file has only {size} "
+                                         "bytes"))
+
+
 def read_header(path: str | os.PathLike) -> TileHeader:
     """The header of a LAS/LAZ file (bounds, counts, format, CRS); points are not read."""
     p = require_file(path, "LAS/LAZ file")
+    _check_record_counts(p)
     try:
         with laspy.open(p) as f:
             return _header_info(p, f.header)
@@ -102,6 +130,7 @@ def read_tile(path: str | os.PathLike, run_id: str = "", chunk_size: int = 2_000
     points so memory stays bounded by the chunk plus the kept points.
     """
     p = require_file(path, "LAS/LAZ file")
+    _check_record_counts(p)
     lo, hi = (None, None) if bbox is None else (np.asarray(bbox[0], float), np.asarray(bbox[1], float))
     xyz, times, inten = [], [], []
     try:

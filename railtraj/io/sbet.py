@@ -19,10 +19,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+from pyproj.exceptions import ProjError
 
 from railtraj.crs import from_geographic, grid_convergence, to_geographic
 from railtraj.data import Trajectory
-from railtraj.errors import FormatError, TrajectoryError
+from railtraj.errors import CRSError, FormatError, TrajectoryError
 from railtraj.io.atomic import atomic_write
 from railtraj.io.trajectory_csv import require_file
 
@@ -62,6 +63,13 @@ def _write_records(path: str | os.PathLike, records: np.ndarray, dtype: np.dtype
 def read_sbet(path: str | os.PathLike) -> np.ndarray:
     """All records of an SBET file as a structured array with fields :data:`SBET_FIELDS`."""
     records = _read_records(path, SBET_DTYPE, "SBET")
+    used = ("lat", "lon", "z", "roll", "pitch", "heading")
+    bad = ~np.isfinite(np.column_stack([records[f] for f in used]))
+    if bad.any():
+        k, j = (int(v) for v in np.argwhere(bad)[0])
+        raise FormatError(f"SBET file {path}: {used[j]} is {float(records[used[j]][k])} at record "
+                          f"{k + 1} (time {float(records['time'][k])}): it is corrupt or not an "
+                          "SBET; re-export it from POSPac")
     if (np.abs(records["lat"]) > np.pi / 2).any() or (np.abs(records["lon"]) > 2 * np.pi).any():
         raise FormatError(f"SBET file {path} has latitudes or longitudes beyond +-90/360 degrees "
                           "in radians: it is corrupt or not an SBET")
@@ -125,7 +133,13 @@ def sbet_to_trajectory(records: np.ndarray, crs: str = "EPSG:27700",
     """
     lat, lon = np.degrees(records["lat"]), np.degrees(records["lon"])
     xyz = from_geographic(lat, lon, records["z"], crs, grid_dir, sbet_crs)
-    heading = np.mod(np.degrees(records["heading"]) - grid_convergence(lat, lon, crs), 360.0)
+    try:
+        convergence = grid_convergence(lat, lon, crs)
+    except ProjError:
+        raise CRSError(f"SBET positions (latitude {lat.min():.3f} to {lat.max():.3f}, longitude "
+                       f"{lon.min():.3f} to {lon.max():.3f} degrees) are outside the area where "
+                       f"{crs} is defined: check crs= (and sbet_crs=) fit the survey") from None
+    heading = np.mod(np.degrees(records["heading"]) - convergence, 360.0)
     rpy = np.column_stack([np.degrees(records["roll"]), np.degrees(records["pitch"]), heading])
     sd = None if smrmsg is None else smrmsg_sd_at(smrmsg, records["time"])
     return Trajectory(time=records["time"], xyz=xyz, rpy=rpy, sd=sd, run_id=run_id)

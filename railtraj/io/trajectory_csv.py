@@ -34,10 +34,19 @@ def require_file(path: str | os.PathLike, what: str) -> Path:
     return p
 
 
+def not_text_error(path: Path, what: str) -> FormatError:
+    """The error for a file that is not UTF-8 text (a binary file, or another encoding)."""
+    return FormatError(f"{what} {path} is not UTF-8 text (it has bytes that are not UTF-8): "
+                       "save it as a plain-text UTF-8 (or ASCII) CSV")
+
+
 def read_header(path: Path, required: tuple[str, ...], what: str) -> list[str]:
     """Lower-cased, stripped column names of a CSV's first line; raise if a required one is missing."""
-    with open(path, encoding="utf-8-sig") as f:
-        first = f.readline()
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            first = f.readline()
+    except UnicodeDecodeError:
+        raise not_text_error(path, what) from None
     names = [c.strip().strip('"').lower() for c in first.rstrip("\r\n").split(",")]
     missing = [c for c in required if c not in names]
     if not first.strip() or missing:
@@ -49,6 +58,14 @@ def read_header(path: Path, required: tuple[str, ...], what: str) -> list[str]:
 
 
 def _locate_bad_cell(path: Path, cols: dict[str, int], what: str) -> FormatError:
+    """The error for a file numpy could not parse: its first bad cell, or not being text."""
+    try:
+        return _scan_for_bad_cell(path, cols, what)
+    except UnicodeDecodeError:
+        return not_text_error(path, what)
+
+
+def _scan_for_bad_cell(path: Path, cols: dict[str, int], what: str) -> FormatError:
     """Find the first line whose used cells are not numbers (error path only, so a plain scan)."""
     with open(path, encoding="utf-8-sig") as f:
         for lineno, line in enumerate(f, start=1):
@@ -99,15 +116,21 @@ def read_text_columns(path: str | os.PathLike, required: tuple[str, ...],
     names = read_header(p, required, what)
     with open(p, encoding="utf-8-sig", newline="") as f:
         reader = csv.reader(f)
-        next(reader, None)
         rows = []
-        for row in reader:
-            if not row or row[0].lstrip().startswith("#"):
-                continue
-            if len(row) != len(names):
-                raise FormatError(f"{what} {p} line {reader.line_num} has {len(row)} cells but the "
-                                  f"header has {len(names)}: fix or remove that line")
-            rows.append(row)
+        try:
+            next(reader, None)
+            for row in reader:
+                if not row or row[0].lstrip().startswith("#"):
+                    continue
+                if len(row) != len(names):
+                    raise FormatError(f"{what} {p} line {reader.line_num} has {len(row)} cells but "
+                                      f"the header has {len(names)}: fix or remove that line")
+                rows.append(row)
+        except UnicodeDecodeError:
+            raise not_text_error(p, what) from None
+        except csv.Error as err:
+            raise FormatError(f"{what} {p} line {reader.line_num} is not valid CSV ({err}): "
+                              "check its quotes (\") are paired, or fix that line") from None
     table = np.array(rows, dtype=str).reshape(len(rows), len(names))
     return {c: np.char.strip(table[:, names.index(c)]) for c in required}
 
