@@ -147,19 +147,19 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     ``s``): rows ``s_mean, dx, dy, dz``; windows without enough points or a valley are left out.
     A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
 
-    The windows cover the central 99 % of the points along the track when the rest stretch the
-    range by over 10 %: a few stray points metres beyond a partial overlap (a diagonal tile
-    corner) must not spread the grid so that most windows fall where there is nothing to fit.
+    The windows cover the central 99 % of the points along the track instead of all of them when
+    that fills more windows with ``min_points``: a few stray points metres beyond a partial
+    overlap (a diagonal tile corner) must not spread the grid so that most windows fall where
+    there is nothing to fit (always trimming cost a dense survey a pair it had).
     ``tau`` is the matcher's fitness radius, which follows the scan's profile spacing; each
     window's fitness is counted within it too (at a fixed 5 cm, a 16 cm profile gap left every
     window of a fast run below 0.5 and its pair ``degenerate``)."""
-    lo_s, hi_s = (float(s.min()), float(s.max())) if len(s) else (0.0, 0.0)
-    core = np.quantile(s, [0.005, 0.995]) if len(s) else (0.0, 0.0)
-    if core[1] - core[0] < 0.9 * (hi_s - lo_s):  # stray points stretch the grid by over 10 %
-        lo_s, hi_s = float(core[0]), float(core[1])
-    span = hi_s - lo_s
-    n_win = max(1, round(span / length), min(min_windows, int(span // min_length))) if len(s) else 0
-    edges = np.linspace(lo_s, hi_s, n_win + 1) if n_win else np.zeros(1)
+    edges = _window_edges(s, length, min_windows, min_length)
+    if len(s):  # stray points may stretch the grid: the core's grid if it fills more windows
+        core = _window_edges(s[(s >= np.quantile(s, 0.005)) & (s <= np.quantile(s, 0.995))], length,
+                             min_windows, min_length)
+        if _filled(s, core, min_points) > _filled(s, edges, min_points):
+            edges = core
     ts = np.arange(-search, search + step / 2, step)
     rows = []
     for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):  # a handful of windows
@@ -174,6 +174,21 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if np.isfinite(t):
             rows.append([float(s[inside].mean()), *(fit.d + t * axis)])
     return np.array(rows).reshape(-1, 4)
+
+
+def _window_edges(s: np.ndarray, length: float, min_windows: int, min_length: float) -> np.ndarray:
+    """Edges of windows of about ``length`` over the range of ``s`` (at least ``min_windows`` of
+    ``min_length`` or more where the range allows)."""
+    if not len(s):
+        return np.zeros(1)
+    span = float(np.ptp(s))
+    n_win = max(1, round(span / length), min(min_windows, int(span // min_length)))
+    return np.linspace(s.min(), s.max(), n_win + 1)
+
+
+def _filled(s: np.ndarray, edges: np.ndarray, min_points: int) -> int:
+    """How many windows between ``edges`` hold at least ``min_points`` of ``s``."""
+    return int((np.histogram(s, edges)[0] >= min_points).sum()) if len(edges) > 1 else 0
 
 
 def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.03) -> tuple:
