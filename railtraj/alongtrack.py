@@ -57,7 +57,8 @@ class AlongTrackOptions:
     min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
     max_candidates: int = 40
-    max_pair_sd: float = 0.015     # m: a vaguer pair is never fixed (5 cm, the most an ok pair may be off, is 3.3 sd)
+    max_pair_sd: float = 0.02      # m: a vaguer pair is never fixed, nor anchors its neighbours
+    max_ok_sd: float = 0.015       # m: a vaguer fixed pair anchors the chain but is not ok (5 cm is 3.3 sd)
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,10 @@ class Curve:
 
 #: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
 NO_EVIDENCE = "no along-track evidence"
+#: status of a pair fixed on its alias whose own along-track sd exceeds ``max_ok_sd``: the alias
+#: is sure, its centimetres are not (a 1.7 cm pair sat 6.2 cm off), so it is not ``ok``; it enters
+#: the adjustment with its covariance, no ties, and anchors its neighbours like a fixed pair
+COARSE = "coarse"
 
 
 @dataclass
@@ -116,7 +121,8 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         chain.sort(key=lambda p: p.s)
         for pair, (shift, margin, verdict) in zip(chain, _resolve_chain(chain, options), strict=True):
             resolved = verdict == "resolved"
-            out[pair.index] = _apply(offsets[pair.index], shift, resolved, trajectories)
+            out[pair.index] = _apply(offsets[pair.index], shift, resolved, trajectories,
+                                     coarse=resolved and pair.sd > options.max_ok_sd)
             report.append({"run_a": run_a, "run_b": run_b, "tile_a": offsets[pair.index].tile_a,
                            "tile_b": offsets[pair.index].tile_b, "status_before": offsets[pair.index].status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
@@ -129,7 +135,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                        "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
                        "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
                        "candidate_shifts_m": []})
-    moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] == "ok" for r in report)
+    moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
              sum(r["status"] != "ok" for r in report))
@@ -316,8 +322,10 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
     return xs, ps
 
 
-def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, Trajectory]) -> TileOffset:
-    """The pair after resolution: on its chosen alias and ``ok``, or ``ambiguous``."""
+def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, Trajectory],
+           coarse: bool = False) -> TileOffset:
+    """The pair after resolution: on its chosen alias and ``ok`` (:data:`COARSE` if ``coarse``),
+    or ``ambiguous``."""
     pw = o.info["piecewise"]
     axis, fit_cov = np.asarray(pw["axis"], float), np.asarray(pw["fit_cov"], float)
     info = dict(o.info, alongtrack={"shift_m": shift, "resolved": resolved})
@@ -328,12 +336,13 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
         return replace(o, status="ambiguous" if o.status == "ok" else o.status,
                        cov=fit_cov + window**2 * np.outer(axis, axis),
                        ties=Ties.empty(o.run_a, o.run_b), info=info)
-    if abs(shift) < 1e-9 and o.status == "ok":
+    if abs(shift) < 1e-9 and o.status == "ok" and not coarse:
         return replace(o, info=info)
     d = o.d + shift * axis
     info["resolved"] = "joint" if o.status != "ok" else "moved"
     info["time_a"] = _time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis)
-    return replace(o, d=d, cov=fit_cov, status="ok", ties=Ties.empty(o.run_a, o.run_b), info=info)
+    return replace(o, d=d, cov=fit_cov, status=COARSE if coarse else "ok", ties=Ties.empty(o.run_a, o.run_b),
+                   info=info)
 
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:

@@ -28,6 +28,7 @@ import numpy as np
 from railtraj.adjust import observations as obs
 from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.solve import solve
+from railtraj.alongtrack import COARSE
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
 
@@ -137,7 +138,7 @@ class SplineOptimizer:
         w = np.hstack([-np.vstack(wa), np.vstack(wb)])
         cov = np.stack([o.cov for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
         for k, o in enumerate(use):  # a weak pair says nothing along the track, whatever its sd there
-            if not o.ok:
+            if o.status in WEAK_STATUSES:
                 axis = _track_axis(o)
                 cov[k] += WEAK_ALONG_SD_M**2 * np.outer(axis, axis)
         # ok pairs with ties enter through their ties; an ok pair without (resolved jointly along
@@ -231,7 +232,7 @@ def _track_axis(o: TileOffset) -> np.ndarray:
 def _usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
     """A degenerate/ambiguous pair, or an ok pair without ties, with a finite offset, covariance
     and observation times."""
-    usable = o.status in WEAK_STATUSES or (o.ok and (o.ties is None or not len(o.ties)))
+    usable = o.status in WEAK_STATUSES or o.status == COARSE or (o.ok and (o.ties is None or not len(o.ties)))
     if not usable or o.run_a not in trajectories or o.run_b not in trajectories:
         return False
     times = [o.info.get("time_a", np.nan), o.info.get("time_b", np.nan)]

@@ -5,7 +5,8 @@ along-track resolution):
 
 * ``aligned``: a unique translation in all three directions (status ``ok``);
 * ``weak along-track``: across-track and height are fixed, along the track the pair says too
-  little (``degenerate``); the adjustment's along-track position there comes from neighbours;
+  little (``degenerate``) or only to 1.5-2 cm on a surely fixed alias (``coarse``); the
+  adjustment's along-track position there comes from neighbours (or the coarse offset);
 * ``unresolved``: an alias one rib or sleeper spacing away fits almost as well, and resolving the
   chain of pairs along the track did not decide it (``ambiguous``); across and height are used;
 * ``refused``: no reliable match at all (``no_consensus``, ``no_overlap``, ``few_keypoints``...).
@@ -30,6 +31,7 @@ COLOURS = {ALIGNED: "#2ca02c", WEAK: "#ffbf00", UNRESOLVED: "#ff7f0e", REFUSED: 
 #: why a pair with this status gave no (or only a partial) constraint, in a surveyor's words
 REASONS = {
     "degenerate": "offset found across and up, not to 1 cm along the track (no distinct features)",
+    "coarse": "alias fixed jointly along the track, but the pair places it only to 1.5-2 cm",
     "ambiguous": "an alias one rib or sleeper spacing away fits almost as well",
     "no_consensus": "too few keypoint pairs agree on any translation",
     "no_overlap": "the two clouds share too little surface at any offset",
@@ -40,7 +42,7 @@ REASONS = {
 
 def verdict(status: str) -> str:
     """The verdict of a tile pair with final matcher status ``status``."""
-    return {"ok": ALIGNED, "degenerate": WEAK, "ambiguous": UNRESOLVED}.get(status, REFUSED)
+    return {"ok": ALIGNED, "degenerate": WEAK, "coarse": WEAK, "ambiguous": UNRESOLVED}.get(status, REFUSED)
 
 
 @dataclass

@@ -133,3 +133,15 @@ def test_a_triangle_of_runs_that_does_not_close_is_demoted():
     out, report = resolve_along_track(bad, {}, AlongTrackOptions())
     assert [o.status for o in out] == ["ambiguous", "ambiguous", "ambiguous", "ok"]
     assert sum(r["verdict"] == "cycle not closed" for r in report) == 3
+
+
+def test_a_vague_pair_fixed_on_its_alias_is_coarse_not_ok():
+    aliases = {2: 3.0, 4: -1.5, 5: 0.6, 7: -3.0, 9: 1.5}
+    offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
+    vague = 4  # its own along-track sd 1.8 cm: over max_ok_sd, under max_pair_sd
+    pw = dict(offsets[vague].info["piecewise"], fit_cov=np.diag([0.018, 0.003, 0.003]).__pow__(2).tolist())
+    offsets[vague] = replace(offsets[vague], info=dict(offsets[vague].info, piecewise=pw))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[vague].status == "coarse" and not len(out[vague].ties)
+    assert abs(out[vague].d[0] - _true_along(s[vague : vague + 1])[0]) < 0.05  # on the true alias
+    assert sum(o.status == "ok" for o in out) >= 8  # its neighbours are still fixed
