@@ -71,7 +71,7 @@ def _observation_times(result: PipelineResult) -> dict[str, list[np.ndarray]]:
         out.setdefault(t.run_a, []).append(t.time_a)
         out.setdefault(t.run_b, []).append(t.time_b)
     for o in result.offsets:
-        if o.status in ("ok", "degenerate", "ambiguous") and np.isfinite(o.cov).all():
+        if o.status in ("ok", "coarse", "degenerate", "ambiguous") and np.isfinite(o.cov).all():
             for run, key in ((o.run_a, "time_a"), (o.run_b, "time_b")):
                 if np.isfinite(o.info.get(key, np.nan)):
                     out.setdefault(run, []).append(np.array([o.info[key]]))
