@@ -9,7 +9,8 @@ the default pipeline and prints one table row:
 * inter-run horizontal RMS / max before -> after, vertical RMS after (all run pairs pooled);
 * absolute horizontal RMS after, and its distance to the sd-weighted average of the runs' input
   errors (the best relative observations allow without control: ``bound``);
-* the worst ``ok`` tile-pair offset and the worst tie, against the truth, and ties over 5 cm;
+* the worst ``ok`` tile-pair offset, the number of ``coarse`` pairs and their worst, the worst tie,
+  against the truth, and ties over 5 cm;
 * the share of tile pairs whose along-track offset is used (``ok`` or resolved).
 """
 
@@ -91,6 +92,8 @@ def score(survey_dir: Path, result) -> dict:
     pool = lambda s, k: float(np.sqrt(np.mean([v[k] ** 2 for v in s["consistency"].values()])))  # noqa: E731
     maxi = lambda s, k: float(max(v[k] for v in s["consistency"].values()))  # noqa: E731
     off = offset_errors(truth.trajectories, result.trajectories, result.offsets)
+    coarse = offset_errors(truth.trajectories, result.trajectories,  # scored like ok pairs
+                           [replace(o, status="ok" if o.status == "coarse" else "x") for o in result.offsets])
     ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t), axis=1) for t in result.ties]
     ties = np.concatenate(ties) if ties else np.zeros(0)
     used = sum(o.status == "ok" or bool(o.info.get("resolved")) for o in result.offsets)
@@ -102,6 +105,7 @@ def score(survey_dir: Path, result) -> dict:
         "abs_v_after": after["overall"]["rms_v"],
         "bound_gap": averaging_bound_gap(truth.trajectories, result.trajectories, result.corrected, truth.chainage),
         "worst_ok": float(max((np.linalg.norm(e) for e in off.values()), default=0.0)),
+        "worst_coarse": float(max((np.linalg.norm(e) for e in coarse.values()), default=0.0)), "coarse": len(coarse),
         "worst_tie": float(ties.max()) if len(ties) else 0.0, "ties_over_5cm": int((ties > 0.05).sum()),
         "ties": len(ties), "used_share": used / max(len(result.offsets), 1),
     }
@@ -130,8 +134,9 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS before -> after | "
-          "abs h / v RMS before -> after | gap to bound | worst ok offset | worst tie | ties > 5 cm | along used | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "abs h / v RMS before -> after | gap to bound | worst ok offset | coarse: n, worst | worst tie | ties > 5 cm | "
+          "along used | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for scenario in args.scenarios:
         for seed in args.seeds:
             survey = survey_for(scenario, seed, args.size, tuple(args.vary))
@@ -148,7 +153,7 @@ def main() -> None:
             print(f"| {scenario} | {seed} | {s['h_before']:.3f} / {s['hmax_before']:.2f} -> {s['h_after']:.3f} / "
                   f"{s['hmax_after']:.3f} | {s['v_before']:.3f} -> {s['v_after']:.3f} | {s['abs_h_before']:.2f} / "
                   f"{s['abs_v_before']:.2f} -> {s['abs_h_after']:.3f} / {s['abs_v_after']:.3f} | {s['bound_gap']:.3f} | "
-                  f"{s['worst_ok']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
+                  f"{s['worst_ok']:.3f} | {s['coarse']}, {s['worst_coarse']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
                   f"{s['used_share']:.0%} | {time.perf_counter() - t0:.0f} |", flush=True)
 
 
