@@ -25,6 +25,7 @@ from railtraj.io.outputs import (
 )
 from railtraj.io.trajectory_csv import write_trajectory_csv
 from railtraj.pipeline import PipelineResult, qc_figures
+from railtraj.qc import PairClouds, pair_clouds
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +94,13 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
         from railtraj.retile import write_corrected_tiles
         write_corrected_tiles(result, out_dir / "tiles", executor)
     seconds = dict(result.seconds, write=time.perf_counter() - t0)
-    metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir)
+    clouds = pair_clouds(result)  # once, for metrics.json's C2C figures and the report's plots
+    metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir, clouds)
     if config is not None:
         metrics["config"] = {k: config.get(k) for k in ("detector", "descriptor", "matcher", "optimizer", "pipeline")}
     write_json(out_dir / "metrics.json", metrics)
     from railtraj.report.html import write_report
-    write_report(out_dir / "report.html", result, metrics, truth_dir=truth_dir)
+    write_report(out_dir / "report.html", result, metrics, truth_dir=truth_dir, clouds=clouds)
     return metrics
 
 
@@ -125,7 +127,7 @@ def _write_anchors(result: PipelineResult, out_dir: Path, mode: str, notes: list
 
 
 def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_count: int, notes: list[str],
-                  truth_dir: Path | None) -> dict[str, Any]:
+                  truth_dir: Path | None, clouds: list[PairClouds] | None = None) -> dict[str, Any]:
     """Counts, timings per stage and QC figures before and after correction."""
     statuses: dict[str, int] = {}
     stage_seconds: dict[str, float] = {}
@@ -147,7 +149,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         },
         "seconds": {**{k: round(v, 3) for k, v in seconds.items()},
                     "per_stage_total": {k: round(v, 3) for k, v in stage_seconds.items()}},
-        "qc": qc_figures(result),
+        "qc": qc_figures(result, clouds),
         "adjustment": result.adjustment,
         "control": control_residuals(result.control, result.trajectories, result.corrected),
         "notes": notes,

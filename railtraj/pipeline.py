@@ -26,7 +26,6 @@ from railtraj.consistency import check_survey
 from railtraj.control import observe_control
 from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileOffset, Trajectory
 from railtraj.errors import ConfigError
-from railtraj.georef import regeoreference_points
 from railtraj.io.las import read_tile
 from railtraj.io.survey import (
     Survey,
@@ -36,7 +35,7 @@ from railtraj.io.survey import (
     require_overlaps,
     unparsed_crs_note,
 )
-from railtraj.qc import c2c_distances, distance_stats, tie_residuals
+from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 
 log = logging.getLogger(__name__)
@@ -287,31 +286,24 @@ def _overlap_times(pair: TilePair, tile_a: PointTile, tile_b: PointTile) -> dict
     return out
 
 
-def qc_figures(result: PipelineResult) -> dict[str, Any]:
-    """Tie residuals and C2C distances before and after correction, overall and per pair."""
+def qc_figures(result: PipelineResult, clouds: list[PairClouds] | None = None) -> dict[str, Any]:
+    """Tie residuals and C2C distances before and after correction, overall and per pair
+    (``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, computed here if not given)."""
     before, after = [], []
     for ties in result.ties:
         before.append(tie_residuals(ties, result.trajectories))
         after.append(tie_residuals(ties, result.trajectories, result.corrected))
-    c2c_before, c2c_after, per_pair = [], [], []
-    for pr in result.pairs:
-        a, b = pr.sample_a, pr.sample_b
-        if len(a) == 0 or len(b) == 0:
-            continue
-        db = c2c_distances(b.xyz, a.xyz)
-        ma = regeoreference_points(a.xyz, a.gps_time, result.trajectories[a.run_id], result.corrected[a.run_id])
-        mb = regeoreference_points(b.xyz, b.gps_time, result.trajectories[b.run_id], result.corrected[b.run_id])
-        da = c2c_distances(mb, ma)
-        c2c_before.append(db)
-        c2c_after.append(da)
-        per_pair.append({"tile_a": pr.offset.tile_a, "tile_b": pr.offset.tile_b, "run_a": pr.offset.run_a,
-                         "run_b": pr.offset.run_b, "c2c_median_before": float(np.median(db)) if len(db) else None,
-                         "c2c_median_after": float(np.median(da)) if len(da) else None})
+    clouds = pair_clouds(result) if clouds is None else clouds
+    per_pair = []
+    for c in clouds:
+        o = result.pairs[c.index].offset
+        per_pair.append({"tile_a": o.tile_a, "tile_b": o.tile_b, "run_a": o.run_a, "run_b": o.run_b,
+                         "c2c_median_before": c.median_before, "c2c_median_after": c.median_after})
     return {
         "tie_residual_before_m": distance_stats(_concat(before)),
         "tie_residual_after_m": distance_stats(_concat(after)),
-        "c2c_before_m": distance_stats(_concat(c2c_before)),
-        "c2c_after_m": distance_stats(_concat(c2c_after)),
+        "c2c_before_m": distance_stats(_concat([c.c2c_before for c in clouds])),
+        "c2c_after_m": distance_stats(_concat([c.c2c_after for c in clouds])),
         "c2c_per_pair": per_pair,
     }
 

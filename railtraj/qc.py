@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -41,3 +43,40 @@ def tie_residuals(ties: Ties, trajectories: dict[str, Trajectory],
         xa = regeoreference_points(xa, ties.time_a, trajectories[ties.run_a], corrected[ties.run_a])
         xb = regeoreference_points(xb, ties.time_b, trajectories[ties.run_b], corrected[ties.run_b])
     return np.linalg.norm(xa - xb, axis=1)
+
+
+@dataclass
+class PairClouds:
+    """One tile pair's samples (survey CRS) before and after, and the C2C distances b -> a."""
+
+    index: int
+    a_before: np.ndarray
+    b_before: np.ndarray
+    a_after: np.ndarray
+    b_after: np.ndarray
+    c2c_before: np.ndarray
+    c2c_after: np.ndarray
+
+    @property
+    def median_before(self) -> float:
+        return float(np.median(self.c2c_before)) if len(self.c2c_before) else float("nan")
+
+    @property
+    def median_after(self) -> float:
+        return float(np.median(self.c2c_after)) if len(self.c2c_after) else float("nan")
+
+
+def pair_clouds(result) -> list[PairClouds]:
+    """Samples and C2C distances of every tile pair that has points in both runs: each pair's
+    samples moved with the corrected trajectories (as re-georeferencing the tiles would), and
+    run b's distances to the nearest point of run a's, before and after."""
+    out = []
+    for k, pr in enumerate(result.pairs):
+        a, b = pr.sample_a, pr.sample_b
+        if len(a) == 0 or len(b) == 0:
+            continue
+        moved = [regeoreference_points(s.xyz, s.gps_time, result.trajectories[s.run_id],
+                                       result.corrected[s.run_id]) for s in (a, b)]
+        out.append(PairClouds(k, a.xyz, b.xyz, moved[0], moved[1], c2c_distances(b.xyz, a.xyz),
+                              c2c_distances(moved[1], moved[0])))
+    return out

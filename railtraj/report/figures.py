@@ -15,8 +15,9 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch, Rectangle
 
+from railtraj.qc import PairClouds
 from railtraj.report.chainage import Chainage
-from railtraj.report.clouds import PairClouds, cross_section, slab_width
+from railtraj.report.clouds import cross_section, slab_width
 from railtraj.report.sections import COLOURS, REFUSED, VERDICTS, PairPlace, Section
 
 ENU = (("E", "tab:blue"), ("N", "tab:orange"), ("U", "tab:green"))

@@ -19,9 +19,10 @@ from typing import Any
 
 from railtraj.errors import RailtrajError
 from railtraj.io.atomic import atomic_write
+from railtraj.qc import PairClouds, pair_clouds
 from railtraj.report import figures, rows
 from railtraj.report.chainage import Chainage, reference_run
-from railtraj.report.clouds import pair_clouds, pick_pairs
+from railtraj.report.clouds import pick_pairs
 from railtraj.report.sections import COLOURS, VERDICTS, place_pairs, sections
 from railtraj.report.tables import key_values, mm, table
 
@@ -44,10 +45,13 @@ LEGEND = ("<p><b>aligned</b>: fixed in all three directions; <b>weak along-track
           "trajectory.</p>")
 
 
-def write_report(path, result, metrics: dict[str, Any], truth_dir: Path | None = None) -> None:
-    """Write the HTML report for a pipeline result and its metrics (and the truth, if simulated)."""
+def write_report(path, result, metrics: dict[str, Any], truth_dir: Path | None = None,
+                 clouds: list[PairClouds] | None = None) -> None:
+    """Write the HTML report for a pipeline result and its metrics (and the truth, if simulated);
+    ``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, computed here if not given."""
     ref = reference_run(sorted(result.trajectories), result.options.reference_run)
-    page = Page(result, metrics, Chainage(result.trajectories[ref]))
+    page = Page(result, metrics, Chainage(result.trajectories[ref]),
+                pair_clouds(result) if clouds is None else clouds)
     parts = [page.header(), page.summary(), page.corrections(), page.misalignment(),
              page.problem_pairs(), page.control(), page.truth(truth_dir), page.details()]
     doc = ("<!doctype html><html lang='en'><head><meta charset='utf-8'>"
@@ -66,11 +70,11 @@ def img(png: bytes, alt: str) -> str:
 class Page:
     """The report's parts, each an HTML fragment, sharing the result's derived data."""
 
-    def __init__(self, result, metrics: dict[str, Any], chainage: Chainage) -> None:
+    def __init__(self, result, metrics: dict[str, Any], chainage: Chainage, clouds: list[PairClouds]) -> None:
         self.result, self.metrics, self.chainage = result, metrics, chainage
         self.places = place_pairs(result, chainage)
         self.sections = sections(self.places)
-        self.clouds = pair_clouds(result)
+        self.clouds = clouds
         self.by_pair = {c.index: c for c in self.clouds}
 
     def header(self) -> str:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from railtraj.report.clouds import PairClouds
+from railtraj.qc import PairClouds
 from railtraj.report.sections import COLOURS, PairPlace, Section, pair_reason
 from railtraj.report.tables import Badge, mm
 
