@@ -46,6 +46,7 @@ class AlongTrackOptions:
 
     enabled: bool = True
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
+    rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
     curvature_sd: float = 0.0001    # m/m^2: what the mean of two measured rates misses of the drift's bend
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
@@ -97,6 +98,8 @@ class Pair:
     rate: float  # d u / d s from the pair's curve
     sd: float  # along-track sd of the pair's own fit
     prior_var: float  # variance of the along offset from the trajectories' sd
+    u0: float = 0.0  # along-track offset of the matcher's own choice (shift 0)
+    along: float = 1.0  # d u / d shift: the pair's axis projected on run b's direction of travel
 
 
 def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Trajectory],
@@ -119,10 +122,16 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                            "shift_m": 0.0, "margin": 0.0, "candidates": 0, "candidate_shifts_m": []})
     for (run_a, run_b), chain in sorted(chains.items()):
         chain.sort(key=lambda p: p.s)
-        for pair, (shift, margin, verdict) in zip(chain, _resolve_chain(chain, options), strict=True):
+        chain = _consensus_rates(chain, options)
+        verdicts, mu, var = _resolve_chain(chain, options)
+        for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
             resolved = verdict == "resolved"
+            alias_var = _alias_variance(offsets[pair.index], shift)
             out[pair.index] = _apply(offsets[pair.index], shift, resolved, trajectories,
-                                     coarse=resolved and pair.sd > options.max_ok_sd)
+                                     coarse=resolved and pair.sd**2 + alias_var > options.max_ok_sd**2,
+                                     alias_var=alias_var)
+            if not resolved:
+                out[pair.index] = _at_predicted(out[pair.index], pair, m, v, trajectories)
             report.append({"run_a": run_a, "run_b": run_b, "tile_a": offsets[pair.index].tile_a,
                            "tile_b": offsets[pair.index].tile_b, "status_before": offsets[pair.index].status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
@@ -227,7 +236,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 float(np.asarray(pw["gradient"], float) @ direction) * sign, float(np.sqrt(direction @ cov @ direction)),
-                max(prior_var, 1e-6))
+                max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction))
 
 
 def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -241,7 +250,8 @@ def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.clip(out, -0.5, 0.5)
 
 
-def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[float, float, str]]:
+def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
+                   ) -> tuple[list[tuple[float, float, str]], np.ndarray, np.ndarray]:
     """Bootstrapped fixing along one run pair, as in GNSS integer ambiguity resolution.
 
     The along-track offset is predicted at every pair (mean and sd) by a Kalman smoother. It runs
@@ -254,7 +264,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[
       costs at least ``min_margin`` more (prediction misfit plus the capped fitness evidence).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
-    chosen shift, its margin and ``resolved`` or ``ambiguous``.
+    chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
+    along-track offset (mean, variance) at every pair.
     """
     n = len(chain)
     fixed = np.full(n, np.nan)  # along offset of the fixed candidate
@@ -281,10 +292,48 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions) -> list[tuple[
             if near and margin >= options.min_margin:
                 newly.append((i, best, margin))
         if not newly:
-            return result
+            return result, mu, var
         for i, best, margin in newly:
             fixed[i] = chain[i].u[best]
             result[i] = (float(chain[i].shift[best]), margin, "resolved")
+
+
+def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair]:
+    """The chain with each pair's drift rate replaced by what its neighbours agree on.
+
+    A pair measures its rate from the slope of its own curve of 3-6 windows; most come within
+    3 mm/m of the truth, but a curve bent by one stray window is 10-16 mm/m off (simulated
+    18-20 m/s surveys). Two such neighbours' disagreement was what widened the prediction
+    between them (by half their difference times the distance), and with it every margin, so
+    a whole tunnel section stayed unresolved although its pairs were right. The rate changes
+    slowly along the track, so within ``rate_radius`` it is a straight line of chainage: fitted
+    to the neighbours' rates with Tukey's biweight (rates more than ``4.685 * rate_sd`` off
+    the line get no weight), its value at the pair replaces the pair's own. Where fewer than 4
+    neighbours, or fewer than half of them, agree on a line, the pair keeps its own rate (and
+    the prediction stays as wide as its disagreement with its neighbours).
+    """
+    if options.rate_radius <= 0 or len(chain) < 4:
+        return chain
+    s = np.array([p.s for p in chain])
+    rate = np.array([p.rate for p in chain])
+    scale = 4.685 * options.rate_sd  # Tukey's biweight at 95 % efficiency
+    out = []
+    for p in chain:  # a few dozen pairs per run pair: small loops
+        near = np.flatnonzero(np.abs(s - p.s) <= options.rate_radius)
+        x = np.column_stack([np.ones(len(near)), s[near] - p.s])
+        coef = np.array([np.median(rate[near]), 0.0])  # start from the median: robust to a stray half
+        for _ in range(10):  # iteratively reweighted least squares
+            r = (rate[near] - x @ coef) / scale
+            w = np.where(np.abs(r) < 1.0, (1.0 - r**2) ** 2, 0.0)
+            if len(near) < 4 or (w > 0).sum() < max(3, 0.5 * len(near)):
+                coef = None  # too few neighbours agree: the pair keeps its own rate
+                break
+            new = np.linalg.lstsq(x * w[:, None], rate[near] * w, rcond=None)[0]
+            if np.allclose(new, coef, atol=1e-6):
+                break
+            coef = new
+        out.append(p if coef is None else replace(p, rate=float(coef[0])))
+    return out
 
 
 def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -322,10 +371,23 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
     return xs, ps
 
 
+def _alias_variance(o: TileOffset, shift: float) -> float:
+    """Variance (m^2) a move to another alias adds along the track.
+
+    The matcher's windows place its own choice to millimetres; another alias is placed by the
+    fitness profile, sampled every ``step`` (5 cm, more on sparse scans) and often flat-topped
+    there, so its peak is known to within a step: ``step^2 / 12``. On a 15 cm-gap scan a pair
+    moved 3.06 m sat 6.6 cm off along the track while its fit claimed 5 mm.
+    """
+    if abs(shift) < 1e-9:
+        return 0.0
+    return float(o.info.get("alias_profile", {}).get("step", 0.05)) ** 2 / 12.0
+
+
 def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, Trajectory],
-           coarse: bool = False) -> TileOffset:
+           coarse: bool = False, alias_var: float = 0.0) -> TileOffset:
     """The pair after resolution: on its chosen alias and ``ok`` (:data:`COARSE` if ``coarse``),
-    or ``ambiguous``."""
+    or ``ambiguous``; ``alias_var`` widens it along the track (:func:`_alias_variance`)."""
     pw = o.info["piecewise"]
     axis, fit_cov = np.asarray(pw["axis"], float), np.asarray(pw["fit_cov"], float)
     info = dict(o.info, alongtrack={"shift_m": shift, "resolved": resolved})
@@ -341,8 +403,30 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
     d = o.d + shift * axis
     info["resolved"] = "joint" if o.status != "ok" else "moved"
     info["time_a"] = _time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis)
-    return replace(o, d=d, cov=fit_cov, status=COARSE if coarse else "ok", ties=Ties.empty(o.run_a, o.run_b),
-                   info=info)
+    return replace(o, d=d, cov=fit_cov + alias_var * np.outer(axis, axis), status=COARSE if coarse else "ok",
+                   ties=Ties.empty(o.run_a, o.run_b), info=info)
+
+
+def _at_predicted(o: TileOffset, pair: Pair, mu: float, var: float,
+                  trajectories: dict[str, Trajectory]) -> TileOffset:
+    """An unresolved pair observed where the chain predicts, not on the matcher's alias.
+
+    A weak pair still constrains across and up, at ``time_a``/``time_b``. The matcher took run a's
+    time at the place its (possibly wrong) alias points to: 3 m off on a 3 m alias, where the
+    runs' offset has moved by 3 m times its gradient (18 mm/m: 5 cm), and the adjustment, whose
+    common mode of the runs is only loosely held without control, absorbed that as a shift of
+    every run (commensurate_fast: 20 cm). So ``time_a`` is moved to the predicted along-track
+    offset ``mu``, and what the prediction's variance leaves unknown of where the offset applies
+    widens its covariance along the pair's gradient.
+    """
+    if not np.isfinite(mu) or not np.isfinite(var) or abs(pair.along) < 0.5:
+        return o
+    shift = (mu - pair.u0) / pair.along
+    pw = o.info["piecewise"]
+    axis, gradient = np.asarray(pw["axis"], float), np.asarray(pw["gradient"], float)
+    info = dict(o.info, time_a=_time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis),
+                observed_at={"predicted_shift_m": round(float(shift), 3), "sd_m": round(float(np.sqrt(var)), 3)})
+    return replace(o, cov=o.cov + var / pair.along**2 * np.outer(gradient, gradient), info=info)
 
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:
