@@ -181,3 +181,12 @@ def test_a_stray_rate_does_not_unresolve_its_neighbours():
     assert [out[k].status for k in (5, 6)] == ["coarse", "ok"]
     for k, o in enumerate(out):
         assert o.status == "ambiguous" or abs(o.d[0] - _true_along(s[k : k + 1])[0]) < 0.01
+
+
+def test_a_degenerate_pair_fixed_on_its_own_alias_is_coarse_with_a_wider_sd():
+    """The chain fixes a degenerate pair's alias, not its centimetres (a 2-3 window fit)."""
+    offsets, trajs, s = _chain({2: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[8].status == "coarse" and abs(out[8].d[0] - _true_along(s[8:9])[0]) < 0.01
+    assert out[8].cov[0, 0] >= 0.02**2 * 0.999  # raised to max_pair_sd along the track
+    assert out[7].status == "ok" and out[7].cov[0, 0] < 0.01**2  # an ambiguous pair on its own fit
