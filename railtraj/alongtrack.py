@@ -115,8 +115,10 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         pair = _candidates(k, o, trajectories, travelled, options)
         if isinstance(pair, Pair):
             chains.setdefault((o.run_a, o.run_b), []).append(pair)
-        elif pair == NO_EVIDENCE and o.ok:  # every shift fits alike: the matcher's ok has no ground
-            out[k] = _apply(o, 0.0, False, trajectories)
+        elif pair == NO_EVIDENCE:  # every shift fits alike: observed where the trajectories say
+            out[k] = _at_prior(_apply(o, 0.0, False, trajectories), trajectories)
+            if not o.ok:  # an ok pair's demotion is reported: its matcher's ok had no ground
+                continue
             report.append({"run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
                            "status_before": o.status, "status": out[k].status, "verdict": NO_EVIDENCE,
                            "shift_m": 0.0, "margin": 0.0, "candidates": 0, "candidate_shifts_m": []})
@@ -132,7 +134,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                                                           or offsets[pair.index].status == "degenerate"),
                                      alias_var=extra)
             if not resolved:
-                out[pair.index] = _at_predicted(out[pair.index], pair, m, v, trajectories)
+                out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, m, v, trajectories)
             report.append({"run_a": run_a, "run_b": run_b, "tile_a": offsets[pair.index].tile_a,
                            "tile_b": offsets[pair.index].tile_b, "status_before": offsets[pair.index].status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
@@ -226,18 +228,27 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
-    direction = _direction(traj_b, times[1])
+    direction, prior_var = _along_frame(o, trajectories)
     sign = float(np.sign(axis @ direction)) or 1.0
     u = (o.d @ direction) + shift * (axis @ direction)
     cov = np.asarray(pw["fit_cov"], float)
-    sd_a, sd_b = trajectories[o.run_a].sd_at(np.array([times[0]])), traj_b.sd_at(np.array([times[1]]))
-    prior_var = float((sd_a[0] ** 2 + sd_b[0] ** 2) @ direction**2) if sd_a is not None and sd_b is not None else 1e4
     # the profile is measured about the matcher's curve, fitted at its own choice, so it favours
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 float(np.asarray(pw["gradient"], float) @ direction) * sign, float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction))
+
+
+def _along_frame(o: TileOffset, trajectories: dict[str, Trajectory]) -> tuple[np.ndarray, float]:
+    """Run b's unit direction of travel where the pair was observed, and the variance of the
+    runs' along-track offset there from their trajectories' sd (1e4 where they report none)."""
+    times = (o.info["time_a"], o.info["time_b"])
+    traj_b = trajectories[o.run_b]
+    direction = _direction(traj_b, times[1])
+    sd_a, sd_b = trajectories[o.run_a].sd_at(np.array([times[0]])), traj_b.sd_at(np.array([times[1]]))
+    prior_var = float((sd_a[0] ** 2 + sd_b[0] ** 2) @ direction**2) if sd_a is not None and sd_b is not None else 1e4
+    return direction, prior_var
 
 
 def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -262,7 +273,10 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
     * the pair's own along-track sd is at most ``max_pair_sd``,
     * that candidate is within ``3 sd`` of the prediction, and
     * the runner-up, or an alias one ``min_period`` away if the pair shows no other candidate,
-      costs at least ``min_margin`` more (prediction misfit plus the capped fitness evidence).
+      costs at least ``min_margin`` more (prediction misfit plus the capped fitness evidence),
+    * and, for another alias than the matcher's, no other candidate lies within half
+      ``min_period`` of it: a noisy profile's peaks crowd, and one of them 8 cm off the truth
+      was fixed next to a precise prediction (a featureless tunnel near its portal).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
     chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
@@ -289,8 +303,11 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             unseen = (p.u[best] - k * options.min_period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
+            # peaks closer than half the shortest period cannot both be aliases: one is the
+            # profile's noise, and where another alias sits is then known no better than that
+            crowded = p.shift[best] != 0 and (np.abs(p.shift - p.shift[best]) < 0.5 * options.min_period).sum() > 1
             result[i] = (float(p.shift[best]), margin, "ambiguous")
-            if near and margin >= options.min_margin:
+            if near and not crowded and margin >= options.min_margin:
                 newly.append((i, best, margin))
         if not newly:
             return result, mu, var
@@ -414,7 +431,16 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
                    ties=Ties.empty(o.run_a, o.run_b), info=info)
 
 
-def _at_predicted(o: TileOffset, pair: Pair, mu: float, var: float,
+def _at_prior(o: TileOffset, trajectories: dict[str, Trajectory]) -> TileOffset:
+    """A pair without along-track evidence (and so outside any chain) observed where the input
+    trajectories put run a against run b (no along-track offset), with their sd: as
+    :func:`_at_predicted`, for want of a prediction."""
+    direction, prior_var = _along_frame(o, trajectories)
+    axis = np.asarray(o.info["piecewise"]["axis"], float)
+    return _at_predicted(o, float(o.d @ direction), float(axis @ direction), 0.0, prior_var, trajectories)
+
+
+def _at_predicted(o: TileOffset, u0: float, along: float, mu: float, var: float,
                   trajectories: dict[str, Trajectory]) -> TileOffset:
     """An unresolved pair observed where the chain predicts, not on the matcher's alias.
 
@@ -426,14 +452,14 @@ def _at_predicted(o: TileOffset, pair: Pair, mu: float, var: float,
     offset ``mu``, and what the prediction's variance leaves unknown of where the offset applies
     widens its covariance along the pair's gradient.
     """
-    if not np.isfinite(mu) or not np.isfinite(var) or abs(pair.along) < 0.5:
+    if not np.isfinite(mu) or not np.isfinite(var) or abs(along) < 0.5:
         return o
-    shift = (mu - pair.u0) / pair.along
+    shift = (mu - u0) / along
     pw = o.info["piecewise"]
     axis, gradient = np.asarray(pw["axis"], float), np.asarray(pw["gradient"], float)
     info = dict(o.info, time_a=_time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis),
                 observed_at={"predicted_shift_m": round(float(shift), 3), "sd_m": round(float(np.sqrt(var)), 3)})
-    return replace(o, cov=o.cov + var / pair.along**2 * np.outer(gradient, gradient), info=info)
+    return replace(o, cov=o.cov + var / along**2 * np.outer(gradient, gradient), info=info)
 
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:

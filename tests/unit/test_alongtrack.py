@@ -190,3 +190,17 @@ def test_a_degenerate_pair_fixed_on_its_own_alias_is_coarse_with_a_wider_sd():
     assert out[8].status == "coarse" and abs(out[8].d[0] - _true_along(s[8:9])[0]) < 0.01
     assert out[8].cov[0, 0] >= 0.02**2 * 0.999  # raised to max_pair_sd along the track
     assert out[7].status == "ok" and out[7].cov[0, 0] < 0.01**2  # an ambiguous pair on its own fit
+
+
+def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_put_it():
+    """A flat profile gives no chain prediction: the pair's across and up are observed at the
+    place the input trajectories agree on, not at the matcher's alias 3 m away."""
+    offsets, trajs, s = _chain({5: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    flat = offsets[5]
+    t0 = trajs["run_a"].time[0]
+    profile = dict(flat.info["alias_profile"], fitness=[0.997] * len(flat.info["alias_profile"]["fitness"]))
+    offsets[5] = replace(flat, info=dict(flat.info, alias_profile=profile, time_a=t0 + (s[5] + 3.0) / 10.0))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    where = (out[5].info["time_a"] - t0) * 10.0
+    assert out[5].status == "ambiguous" and abs(where - s[5]) < 0.7, where  # within the 0.6 m offset
+    assert "observed_at" in out[5].info
