@@ -133,8 +133,10 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                                      coarse=resolved and (pair.sd**2 + extra > options.max_ok_sd**2
                                                           or offsets[pair.index].status == "degenerate"),
                                      alias_var=extra)
-            if not resolved:
-                out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, m, v, trajectories)
+            if not resolved:  # observed at its likeliest candidate, or at the prediction if none is near
+                u_best = pair.u0 + shift * pair.along
+                at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
+                out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
             report.append({"run_a": run_a, "run_b": run_b, "tile_a": offsets[pair.index].tile_a,
                            "tile_b": offsets[pair.index].tile_b, "status_before": offsets[pair.index].status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
@@ -448,9 +450,11 @@ def _at_predicted(o: TileOffset, u0: float, along: float, mu: float, var: float,
     time at the place its (possibly wrong) alias points to: 3 m off on a 3 m alias, where the
     runs' offset has moved by 3 m times its gradient (18 mm/m: 5 cm), and the adjustment, whose
     common mode of the runs is only loosely held without control, absorbed that as a shift of
-    every run (commensurate_fast: 20 cm). So ``time_a`` is moved to the predicted along-track
-    offset ``mu``, and what the prediction's variance leaves unknown of where the offset applies
-    widens its covariance along the pair's gradient.
+    every run (commensurate_fast: 20 cm). So ``time_a`` is moved to the along-track offset
+    ``mu``: the pair's candidate nearest the chain's prediction when it lies within 2 sd of it
+    (a prediction across an unresolved section can be 0.3 m off where the matcher was right),
+    else the prediction itself. What the prediction's variance ``var`` leaves unknown of where
+    the offset applies widens its covariance along the pair's gradient.
     """
     if not np.isfinite(mu) or not np.isfinite(var) or abs(along) < 0.5:
         return o
