@@ -26,6 +26,7 @@ from railtraj.consistency import check_survey
 from railtraj.control import observe_control
 from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileOffset, Trajectory
 from railtraj.errors import ConfigError
+from railtraj.georef import Regeoreferencer
 from railtraj.io.las import read_tile
 from railtraj.io.survey import (
     Survey,
@@ -290,9 +291,10 @@ def qc_figures(result: PipelineResult, clouds: list[PairClouds] | None = None) -
     """Tie residuals and C2C distances before and after correction, overall and per pair
     (``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, computed here if not given)."""
     before, after = [], []
+    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
     for ties in result.ties:
-        before.append(tie_residuals(ties, result.trajectories))
-        after.append(tie_residuals(ties, result.trajectories, result.corrected))
+        before.append(tie_residuals(ties))
+        after.append(tie_residuals(ties, move))
     clouds = pair_clouds(result) if clouds is None else clouds
     per_pair = []
     for c in clouds:
