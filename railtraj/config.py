@@ -59,6 +59,7 @@ class RunConfig:
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)
     threads: int = 0                   # Open3D threads; 0: all cores
     resume: bool = True                # reuse finished tiles/pairs of an earlier run in out_dir
+    max_memory_gb: float = 0.0         # stop with an error above this resident memory (GiB, with workers); 0: off
     detector: Any = MISSING
     descriptor: Any = MISSING
     matcher: Any = MISSING
