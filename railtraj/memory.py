@@ -2,7 +2,8 @@
 
 :class:`MemoryMonitor` samples the resident memory of this process and its live children
 (executor workers) every ``interval`` seconds in a daemon thread (psutil) and remembers the
-largest total. With a limit (``max_memory_gb``), the first sample above it interrupts the main
+largest total. With a limit (``max_memory_gb``), the first sample above it (or the first after
+this process's own peak, ``getrusage``, passed it between two samples) interrupts the main
 thread with :class:`railtraj.errors.MemoryLimitError`, which the command line prints as one line
 and exits 2 on; pending executor work is cancelled on the way out. Any other error that leaves
 the job once the limit was crossed (code that caught the interrupt and raised its own) is
@@ -83,10 +84,12 @@ class MemoryMonitor:
             raise self.error() from exc
 
     def sample(self) -> float:
-        """Measure now; remember the peak; return the reading (GiB)."""
+        """Measure now; remember the peak; return the reading (GiB): the larger of the current
+        total (this process and its workers) and the kernel's peak of this process, which also
+        catches a spike that came and went between two samples."""
         now = resident_gb()
         self.peak_gb = max(self.peak_gb, now)
-        return now
+        return max(now, peak_rss_gb()["self"])
 
     def _run(self) -> None:
         main = threading.main_thread().ident
