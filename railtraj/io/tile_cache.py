@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
-from pathlib import Path
 
 import numpy as np
 
 from railtraj.data import PointTile
 from railtraj.io.las import read_tile
+from railtraj.io.trajectory_csv import require_file
 
 #: default budget of the per-process cache (``pipeline.tile_cache_gb``)
 DEFAULT_BUDGET_GB = 1.0
@@ -48,8 +48,9 @@ class TileCache:
     def read(self, path: str | os.PathLike, run_id: str = "",
              bbox: tuple[np.ndarray, np.ndarray] | None = None) -> PointTile:
         """The tile at ``path`` (only inside ``bbox`` when given), from memory when cached."""
-        st = Path(path).stat()
-        key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns, run_id)
+        p = require_file(path, "LAS/LAZ file")  # a missing tile: read_tile's one-line error
+        st = p.stat()
+        key = (str(p.resolve()), st.st_size, st.st_mtime_ns, run_id)
         tile = self._tiles.get(key)
         if tile is not None:
             self.hits += 1

@@ -66,3 +66,10 @@ def test_zero_budget_reads_every_time(tiles):
     cache.read(tiles[0])
     cache.read(tiles[0])
     assert (cache.reads, cache.hits) == (2, 0)
+
+
+def test_a_missing_tile_is_an_input_error(tmp_path):
+    from railtraj.errors import InputError
+
+    with pytest.raises(InputError, match="gone.laz"):
+        TileCache(1.0).read(tmp_path / "gone.laz")
