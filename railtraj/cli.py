@@ -69,9 +69,8 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     from railtraj.crs import frame_transformer, resolve_sbet_crs
     from railtraj.export import write_outputs
     from railtraj.io.atomic import atomic_write
-    from railtraj.pipeline import PipelineOptions, run_pipeline
-
     from railtraj.memory import MemoryMonitor
+    from railtraj.pipeline import PipelineOptions, run_pipeline
 
     anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
     if not cfg.max_memory_gb >= 0:

@@ -24,10 +24,17 @@ import numpy as np
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
-from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileOffset, Trajectory, check_span
+from railtraj.data import (
+    ControlObservations,
+    Keypoints,
+    PointTile,
+    Ties,
+    TileOffset,
+    Trajectory,
+    check_span,
+)
 from railtraj.errors import ConfigError
 from railtraj.georef import Regeoreferencer
-from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.io.survey import (
     Survey,
     TilePair,
@@ -36,6 +43,7 @@ from railtraj.io.survey import (
     require_overlaps,
     unparsed_crs_note,
 )
+from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 
