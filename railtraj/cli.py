@@ -24,7 +24,7 @@ from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
 from railtraj.config import anchors_mode, register_configs
-from railtraj.errors import OutputError, RailtrajError
+from railtraj.errors import ConfigError, OutputError, RailtrajError
 
 log = logging.getLogger("railtraj")
 _failures: list[str] = []
@@ -69,9 +69,13 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     from railtraj.crs import frame_transformer, resolve_sbet_crs
     from railtraj.export import write_outputs
     from railtraj.io.atomic import atomic_write
+    from railtraj.memory import MemoryMonitor
     from railtraj.pipeline import PipelineOptions, run_pipeline
 
     anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
+    if not cfg.max_memory_gb >= 0:
+        raise ConfigError(f"max_memory_gb={cfg.max_memory_gb} must be a size in GiB (e.g. max_memory_gb=4) "
+                          "or 0 for no limit")
     sbet_crs = resolve_sbet_crs(cfg.sbet_crs, cfg.crs)  # so does a bad sbet_crs
     if cfg.threads:
         from railtraj.o3d import o3d
@@ -89,22 +93,24 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     grid_dir = to_absolute_path(grid_dir) if grid_dir else None
     options = PipelineOptions(mode=pipe.name, pairs=pipe.pairs, reference_run=pipe.reference_run,
                               tile=pipe.tile, max_pairs=pipe.max_pairs, min_overlap_m=pipe.min_overlap_m,
-                              max_misalignment_m=pipe.max_misalignment_m, crs=cfg.crs, grid_dir=grid_dir,
+                              max_misalignment_m=pipe.max_misalignment_m, tile_cache_gb=pipe.tile_cache_gb,
+                              crs=cfg.crs, grid_dir=grid_dir,
                               sbet_crs=sbet_crs,
                               alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)))
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         frame_transformer(cfg.crs, sbet_crs, grid_dir)
     try:
-        result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
-        out_dir.mkdir(parents=True, exist_ok=True)
-        # written once the inputs passed, so a run that fails on bad input keeps the previous one
-        with atomic_write(out_dir / "config.yaml") as fh:
-            fh.write(OmegaConf.to_yaml(cfg, resolve=True))
-        write_outputs(result, out_dir, anchors=anchors, write_tiles=bool(cfg.write_tiles),
-                      executor=stages.executor,
-                      truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
-                      config=OmegaConf.to_container(cfg, resolve=True))
+        with MemoryMonitor(float(cfg.max_memory_gb)) as memory:
+            result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
+            out_dir.mkdir(parents=True, exist_ok=True)
+            # written once the inputs passed, so a run that fails on bad input keeps the previous one
+            with atomic_write(out_dir / "config.yaml") as fh:
+                fh.write(OmegaConf.to_yaml(cfg, resolve=True))
+            write_outputs(result, out_dir, anchors=anchors, write_tiles=bool(cfg.write_tiles),
+                          executor=stages.executor,
+                          truth_dir=Path(to_absolute_path(truth_dir)) if truth_dir else None,
+                          config=OmegaConf.to_container(cfg, resolve=True), memory=memory.report)
     finally:
         if hasattr(stages.executor, "close"):  # e.g. dask's LocalCluster: no worker outlives the job
             stages.executor.close()

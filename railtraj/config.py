@@ -36,6 +36,7 @@ class PipelineConfig:
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
+    tile_cache_gb: float = 1.0         # whole tiles kept per process between detection and matching
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
 
 
@@ -58,6 +59,7 @@ class RunConfig:
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)
     threads: int = 0                   # Open3D threads; 0: all cores
     resume: bool = True                # reuse finished tiles/pairs of an earlier run in out_dir
+    max_memory_gb: float = 0.0         # stop with an error above this resident memory (GiB, with workers); 0: off
     detector: Any = MISSING
     descriptor: Any = MISSING
     matcher: Any = MISSING

@@ -80,13 +80,7 @@ class Trajectory:
 
     def check_covers(self, times: np.ndarray, what: str = "points") -> None:
         """Raise :class:`TrajectoryError` unless every time in ``times`` is within the span."""
-        t = np.asarray(times, dtype=float)
-        if len(t) and not self.covers(t).all():
-            outside = int((~self.covers(t)).sum())
-            raise TrajectoryError(
-                f"trajectory {self.run_id!r} ({self.time[0]:.3f}-{self.time[-1]:.3f} s) does not cover "
-                f"{outside} of {len(t)} {what} ({t.min():.3f}-{t.max():.3f} s); "
-                "supply the trajectory for the whole run or check the time base (GPS week seconds vs adjusted standard time)")
+        check_span(self.run_id, self.span, times, what)
 
     def rotations(self) -> Rotation:
         """Body -> NED rotation per epoch."""
@@ -129,6 +123,20 @@ class Trajectory:
     def with_attitude_from(self, rot: Rotation) -> Trajectory:
         """A copy with attitude taken from body -> NED rotations ``rot``."""
         return replace(self, rpy=rotation_to_attitude(rot))
+
+
+def check_span(run_id: str, span: tuple[float, float], times: np.ndarray, what: str = "points") -> None:
+    """Raise :class:`TrajectoryError` unless every time in ``times`` lies within ``span``, the
+    (first, last) epoch time of run ``run_id``'s trajectory. Takes the span rather than the
+    trajectory so that a worker checking one tile needs two numbers, not the whole run."""
+    t = np.asarray(times, dtype=float)
+    inside = (t >= span[0]) & (t <= span[1])
+    if len(t) and not inside.all():
+        outside = int((~inside).sum())
+        raise TrajectoryError(
+            f"trajectory {run_id!r} ({span[0]:.3f}-{span[1]:.3f} s) does not cover "
+            f"{outside} of {len(t)} {what} ({t.min():.3f}-{t.max():.3f} s); "
+            "supply the trajectory for the whole run or check the time base (GPS week seconds vs adjusted standard time)")
 
 
 @dataclass(frozen=True)

@@ -44,5 +44,9 @@ class ConfigError(RailtrajError):
     """A configuration value is out of range or inconsistent."""
 
 
+class MemoryLimitError(RailtrajError):
+    """The job used more memory than ``max_memory_gb`` and was stopped."""
+
+
 class NoOverlapError(InputError):
     """The runs of a survey share no tiles, so nothing can be matched."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -80,8 +81,12 @@ def _observation_times(result: PipelineResult) -> dict[str, list[np.ndarray]]:
 
 
 def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", write_tiles: bool = False,
-                  executor=None, truth_dir: Path | None = None, config: dict | None = None) -> dict[str, Any]:
-    """Write trajectories, offsets, ties, anchors, metrics.json, report.html (and tiles)."""
+                  executor=None, truth_dir: Path | None = None, config: dict | None = None,
+                  memory: Callable[[], dict[str, float]] | None = None) -> dict[str, Any]:
+    """Write trajectories, offsets, ties, anchors, metrics.json, report.html (and tiles).
+
+    ``memory`` (e.g. :meth:`railtraj.memory.MemoryMonitor.report`) gives the job's peak memory
+    for metrics.json, measured just before it is written."""
     t0 = time.perf_counter()
     for run_id, traj in result.corrected.items():
         write_trajectory_csv(out_dir / "trajectories" / f"{run_id}.csv", traj)
@@ -96,6 +101,8 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
     seconds = dict(result.seconds, write=time.perf_counter() - t0)
     clouds = pair_clouds(result)  # once, for metrics.json's C2C figures and the report's plots
     metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir, clouds)
+    if memory is not None:
+        metrics["memory"] = memory()
     if config is not None:
         metrics["config"] = {k: config.get(k) for k in ("detector", "descriptor", "matcher", "optimizer", "pipeline")}
     write_json(out_dir / "metrics.json", metrics)

@@ -126,6 +126,33 @@ def regeoreference_points(xyz: np.ndarray, times: np.ndarray, from_traj: Traject
     return PoseInterpolator(to_traj).body_to_world(times, body)
 
 
+class Regeoreferencer:
+    """Moves points of every run from its input trajectory to its corrected one.
+
+    :func:`regeoreference_points` builds two :class:`PoseInterpolator` (one pass over each whole
+    trajectory) per call; QC moves the samples and ties of every tile pair, which made that
+    O(pairs x epochs). This builds one interpolator per trajectory, on first use, and gives the
+    same coordinates.
+    """
+
+    def __init__(self, before: dict[str, Trajectory], after: dict[str, Trajectory]) -> None:
+        self.before, self.after = before, after
+        self._interp: dict[tuple[str, bool], PoseInterpolator] = {}
+
+    def _interpolator(self, run_id: str, corrected: bool) -> PoseInterpolator:
+        key = (run_id, corrected)
+        if key not in self._interp:
+            self._interp[key] = PoseInterpolator((self.after if corrected else self.before)[run_id])
+        return self._interp[key]
+
+    def __call__(self, run_id: str, xyz: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """``xyz`` of run ``run_id`` (at ``times``) re-georeferenced with its corrected trajectory."""
+        if len(xyz) == 0:
+            return xyz
+        body = self._interpolator(run_id, False).world_to_body(times, xyz)
+        return self._interpolator(run_id, True).body_to_world(times, body)
+
+
 def regeoreference(tile: PointTile, from_traj: Trajectory, to_traj: Trajectory) -> PointTile:
     """A tile's points moved from the trajectory they were georeferenced with to another one."""
     if len(tile) == 0:

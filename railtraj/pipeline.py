@@ -24,9 +24,17 @@ import numpy as np
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
-from railtraj.data import ControlObservations, Keypoints, PointTile, Ties, TileOffset, Trajectory
+from railtraj.data import (
+    ControlObservations,
+    Keypoints,
+    PointTile,
+    Ties,
+    TileOffset,
+    Trajectory,
+    check_span,
+)
 from railtraj.errors import ConfigError
-from railtraj.io.las import read_tile
+from railtraj.georef import Regeoreferencer
 from railtraj.io.survey import (
     Survey,
     TilePair,
@@ -35,6 +43,7 @@ from railtraj.io.survey import (
     require_overlaps,
     unparsed_crs_note,
 )
+from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 
@@ -69,6 +78,7 @@ class PipelineOptions:
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
+    tile_cache_gb: float = DEFAULT_BUDGET_GB  # whole tiles kept per process between detect and match
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
 
 
@@ -124,23 +134,31 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
              sum(len(r.tiles) for r in survey.runs.values()), len(pairs))
 
     t0 = time.perf_counter()
-    tiles = sorted({(p.run_a, p.tile_a.path) for p in pairs} | {(p.run_b, p.tile_b.path) for p in pairs})
+    order = visit_order(pairs)
+    tiles = list(dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
+                                                          (pairs[k].run_b, pairs[k].tile_b.path))))
     tile_keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
     detected, tiles_reused = cached_map(
-        stages.executor, detect_tile, [(run, path, trajectories[run], stages) for run, path in tiles],
+        stages.executor, detect_tile,
+        [(run, path, trajectories[run].span, stages, options.tile_cache_gb) for run, path in tiles],
         tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
     keypoints = dict(zip(tiles, detected, strict=True))
     clock["detect"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     tile_key = dict(zip(tiles, tile_keys, strict=True))
-    pair_keys = [cache.pair_key(p, tile_key[(p.run_a, p.tile_a.path)], tile_key[(p.run_b, p.tile_b.path)],
+    backwards = order[::-1]  # the tiles detected last are still in the tile cache: match them first
+    pair_keys = [cache.pair_key(pairs[k], tile_key[(pairs[k].run_a, pairs[k].tile_a.path)],
+                                tile_key[(pairs[k].run_b, pairs[k].tile_b.path)],
                                 {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
-                 if cache else "" for p in pairs]
-    jobs = [(pair, keypoints[(pair.run_a, pair.tile_a.path)], keypoints[(pair.run_b, pair.tile_b.path)],
-             stages, options) for pair in pairs]
-    results, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
+                 if cache else "" for k in backwards]
+    jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
+             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options) for k in backwards]
+    matched, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
                                        progress=progress or _log_progress("matched", "tile pairs"))
+    results: list[PairResult] = [None] * len(pairs)  # type: ignore[list-item]
+    for k, r in zip(backwards, matched, strict=True):
+        results[k] = r
     if cache:
         cache.prune()
     clock["match"] = time.perf_counter() - t0
@@ -209,6 +227,15 @@ def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
     return pairs
 
 
+def visit_order(pairs: list[TilePair]) -> list[int]:
+    """Indices of ``pairs`` grouped by the tile of run a (then run b and its tile): the order in
+    which detection visits the tiles, so that the pairs sharing a tile are neighbours and, walked
+    backwards, find their tiles still in the per-process tile cache (:mod:`railtraj.io.tile_cache`).
+    Only the order of work changes: results are put back in the order of ``pairs``."""
+    return sorted(range(len(pairs)), key=lambda k: (pairs[k].run_a, str(pairs[k].tile_a.path), pairs[k].run_b,
+                                                      str(pairs[k].tile_b.path)))
+
+
 def _pair_at(pair: TilePair, tile: str) -> bool:
     names = {pair.tile_a.path.name, pair.tile_b.path.name, pair.tile_a.path.stem, pair.tile_b.path.stem}
     if tile in names:
@@ -221,11 +248,14 @@ def _pair_at(pair: TilePair, tile: str) -> bool:
 
 
 def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
-    """Read one tile, check its trajectory covers it, detect and describe its keypoints."""
-    run_id, path, traj, stages = job
+    """Read one tile, check its run's trajectory span covers it, detect and describe its keypoints.
+
+    The job carries the trajectory's span, not the trajectory: workers need nothing more. The tile
+    stays in this process's tile cache for the pairs matched next (``cache_gb``)."""
+    run_id, path, span, stages, cache_gb = job
     t = time.perf_counter()
-    tile = read_tile(path, run_id=run_id)
-    traj.check_covers(tile.gps_time, f"points of {run_id}/{path.name}")
+    tile = tile_cache(cache_gb).read(path, run_id=run_id)
+    check_span(run_id, span, tile.gps_time, f"points of {run_id}/{path.name}")
     seconds = {"read": time.perf_counter() - t}
     t = time.perf_counter()
     kp = stages.detector.detect(tile)
@@ -240,8 +270,9 @@ def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
 def match_pair(job: tuple) -> PairResult:
     """Match one tile pair from its keypoints (runs in a worker for parallel executors).
 
-    Both tiles are read cropped to their overlap grown by the largest expected misalignment, and
-    so are the keypoints, so that partly overlapping tiles compare like with like.
+    Both tiles are cropped to their overlap grown by the largest expected misalignment, and so
+    are the keypoints, so that partly overlapping tiles compare like with like. The tiles come
+    from this process's tile cache when detection or an earlier pair has just read them.
     """
     pair, (kp_a, sec_a), (kp_b, sec_b), stages, options = job
     margin = options.max_misalignment_m
@@ -251,8 +282,9 @@ def match_pair(job: tuple) -> PairResult:
     seconds = {k: sec_a[k] + sec_b[k] for k in sec_a}
 
     t = time.perf_counter()
-    tile_a = read_tile(pair.tile_a.path, run_id=pair.run_a, bbox=(lo, hi))
-    tile_b = read_tile(pair.tile_b.path, run_id=pair.run_b, bbox=(lo, hi))
+    tiles = tile_cache(options.tile_cache_gb)
+    tile_a = tiles.read(pair.tile_a.path, run_id=pair.run_a, bbox=(lo, hi))
+    tile_b = tiles.read(pair.tile_b.path, run_id=pair.run_b, bbox=(lo, hi))
     kp_a, kp_b = (kp.subset(np.flatnonzero(((kp.xyz >= lo) & (kp.xyz <= hi)).all(axis=1))) for kp in (kp_a, kp_b))
     seconds["read"] += time.perf_counter() - t
 
@@ -290,9 +322,10 @@ def qc_figures(result: PipelineResult, clouds: list[PairClouds] | None = None) -
     """Tie residuals and C2C distances before and after correction, overall and per pair
     (``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, computed here if not given)."""
     before, after = [], []
+    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
     for ties in result.ties:
-        before.append(tie_residuals(ties, result.trajectories))
-        after.append(tie_residuals(ties, result.trajectories, result.corrected))
+        before.append(tie_residuals(ties))
+        after.append(tie_residuals(ties, move))
     clouds = pair_clouds(result) if clouds is None else clouds
     per_pair = []
     for c in clouds:

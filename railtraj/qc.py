@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.data import Ties, Trajectory
-from railtraj.georef import regeoreference_points
+from railtraj.data import Ties
+from railtraj.georef import Regeoreferencer
 
 
 def distance_stats(d: np.ndarray) -> dict[str, float | int]:
@@ -35,13 +35,12 @@ def c2c_distances(query: np.ndarray, reference: np.ndarray, max_dist: float = 1.
     return d[np.isfinite(d)]
 
 
-def tie_residuals(ties: Ties, trajectories: dict[str, Trajectory],
-                  corrected: dict[str, Trajectory] | None = None) -> np.ndarray:
-    """3-D distances between the two copies of every tie, optionally after correction."""
+def tie_residuals(ties: Ties, move: Regeoreferencer | None = None) -> np.ndarray:
+    """3-D distances between the two copies of every tie; after correction with ``move``."""
     xa, xb = ties.xyz_a, ties.xyz_b
-    if corrected is not None:
-        xa = regeoreference_points(xa, ties.time_a, trajectories[ties.run_a], corrected[ties.run_a])
-        xb = regeoreference_points(xb, ties.time_b, trajectories[ties.run_b], corrected[ties.run_b])
+    if move is not None:
+        xa = move(ties.run_a, xa, ties.time_a)
+        xb = move(ties.run_b, xb, ties.time_b)
     return np.linalg.norm(xa - xb, axis=1)
 
 
@@ -71,12 +70,12 @@ def pair_clouds(result) -> list[PairClouds]:
     samples moved with the corrected trajectories (as re-georeferencing the tiles would), and
     run b's distances to the nearest point of run a's, before and after."""
     out = []
+    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
     for k, pr in enumerate(result.pairs):
         a, b = pr.sample_a, pr.sample_b
         if len(a) == 0 or len(b) == 0:
             continue
-        moved = [regeoreference_points(s.xyz, s.gps_time, result.trajectories[s.run_id],
-                                       result.corrected[s.run_id]) for s in (a, b)]
+        moved = [move(s.run_id, s.xyz, s.gps_time) for s in (a, b)]
         out.append(PairClouds(k, a.xyz, b.xyz, moved[0], moved[1], c2c_distances(b.xyz, a.xyz),
                               c2c_distances(moved[1], moved[0])))
     return out

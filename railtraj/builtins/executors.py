@@ -57,10 +57,14 @@ class ProcessExecutor:
         context = multiprocessing.get_context("forkserver")
         with ProcessPoolExecutor(max_workers=self.workers, mp_context=context) as pool:
             futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
-            for done, fut in enumerate(as_completed(futures), start=1):
-                out[futures[fut]] = fut.result()
-                if progress:
-                    progress(done, len(items))
+            try:
+                for done, fut in enumerate(as_completed(futures), start=1):
+                    out[futures[fut]] = fut.result()
+                    if progress:
+                        progress(done, len(items))
+            except BaseException:  # a failed item or a memory stop: queued items never start
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
         return out
 
 

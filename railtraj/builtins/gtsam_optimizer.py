@@ -23,7 +23,6 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 
 from railtraj.data import Ties, TileOffset, Trajectory
@@ -70,6 +69,8 @@ class GtsamOptimizer:
         if not any(len(t) for t in ties) and not weak:
             log.warning("gtsam optimizer: no ties and no usable tile offsets, trajectories left unchanged")
             return dict(trajectories)
+        import gtsam  # here, not at import: loading it takes ~0.3 s of every `railtraj --help`
+
         runs = sorted(trajectories)
         index = {r: i for i, r in enumerate(runs)}
         knots = {r: self._knots(trajectories[r]) for r in runs}

@@ -29,7 +29,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
 
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.errors import ConfigError
@@ -109,6 +108,8 @@ class MedianOptimizer:
 
     def _correct(self, traj: Trajectory, times: np.ndarray, corr: np.ndarray) -> Trajectory:
         """Apply the running median of one run's correction samples, tapered beyond them."""
+        from scipy.ndimage import median_filter, uniform_filter1d  # ~0.1 s: not at registration
+
         cfg, order = self.config, np.argsort(times, kind="stable")
         ts, raw = times[order], corr[order]
         smooth = median_filter(raw, size=(cfg.window, 1), mode="nearest")

@@ -224,6 +224,10 @@ CASES: list[Case] = [
      ("no overlapping tile pair at tile='nowhere.laz'", "give a tile file name")),
     ("no_overlap", lambda s, t: ["pipeline.min_overlap_m=1000"],
      ("share no overlapping tiles", "same crs")),
+    ("negative_max_memory", lambda s, t: ["max_memory_gb=-1"], ("max_memory_gb=-1", "0 for no limit")),
+    # python, numpy and scipy alone take more than 50 MiB: stopped during detection, nothing written
+    ("max_memory_exceeded", lambda s, t: ["max_memory_gb=0.05"],
+     ("above max_memory_gb=0.05", "stopped before the machine swaps", "executor.workers=1")),
 ]
 
 

@@ -44,6 +44,8 @@ def test_job_writes_every_spec_output(survey, tmp_path):
     assert metrics["counts"]["runs"] == len(runs)
     assert metrics["counts"]["tile_pairs"] > 0
     assert "truth" in metrics and "c2c_before_m" in metrics["qc"]
+    memory = metrics["memory"]  # peak resident memory, GiB; no limit by default
+    assert memory["peak_self_gb"] > 0.05 and memory["peak_sampled_gb"] > 0.05 and memory["max_memory_gb"] == 0
     header = (out / "offsets.csv").read_text().splitlines()[0]
     assert header == "run_a,run_b,tile_a,tile_b,dx,dy,dz,sd_x,sd_y,sd_z,inliers,status"
     assert (out / "ties.csv").read_text().startswith("run_a,run_b,time_a,time_b,xa,ya,za,xb,yb,zb,weight")

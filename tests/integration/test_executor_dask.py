@@ -70,8 +70,8 @@ def run(survey: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
     return res
 
 
-def _without(obj, keys=("seconds", "resume", "config")):
-    """metrics.json without wall-clock timings, what was reused and the configuration."""
+def _without(obj, keys=("seconds", "resume", "config", "memory")):
+    """metrics.json without wall-clock timings, peak memory, what was reused and the configuration."""
     if isinstance(obj, dict):
         return {k: _without(v) for k, v in obj.items() if k not in keys}
     return [_without(v) for v in obj] if isinstance(obj, list) else obj

@@ -36,7 +36,7 @@ def run(survey: Path, out: Path, *args: str) -> dict:
 
 def _without_timings(obj):
     if isinstance(obj, dict):
-        return {k: _without_timings(v) for k, v in obj.items() if k not in ("seconds", "resume")}
+        return {k: _without_timings(v) for k, v in obj.items() if k not in ("seconds", "resume", "memory")}
     if isinstance(obj, list):
         return [_without_timings(v) for v in obj]
     return obj
