@@ -127,18 +127,16 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         chain = _consensus_rates(chain, options)
         verdicts, mu, var = _resolve_chain(chain, options)
         for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
-            resolved = verdict == "resolved"
-            extra = _placement_variance(offsets[pair.index], shift, pair.sd, options)
-            out[pair.index] = _apply(offsets[pair.index], shift, resolved, trajectories,
-                                     coarse=resolved and (pair.sd**2 + extra > options.max_ok_sd**2
-                                                          or offsets[pair.index].status == "degenerate"),
-                                     alias_var=extra)
+            o, resolved = offsets[pair.index], verdict == "resolved"
+            extra = _placement_variance(o, shift, pair.sd, options)
+            coarse = resolved and (pair.sd**2 + extra > options.max_ok_sd**2 or o.status == "degenerate")
+            out[pair.index] = _apply(o, shift, resolved, trajectories, coarse=coarse, alias_var=extra)
             if not resolved:  # observed at its likeliest candidate, or at the prediction if none is near
                 u_best = pair.u0 + shift * pair.along
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
-            report.append({"run_a": run_a, "run_b": run_b, "tile_a": offsets[pair.index].tile_a,
-                           "tile_b": offsets[pair.index].tile_b, "status_before": offsets[pair.index].status,
+            report.append({"run_a": run_a, "run_b": run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+                           "status_before": o.status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
                            "margin": round(min(margin, 1e6), 1), "candidates": len(pair.shift),
                            "candidate_shifts_m": np.round(pair.shift, 2).tolist()})

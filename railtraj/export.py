@@ -17,6 +17,7 @@ import numpy as np
 from railtraj.control import control_residuals
 from railtraj.data import Trajectory
 from railtraj.errors import CRSError
+from railtraj.georef import Regeoreferencer
 from railtraj.io.outputs import (
     write_anchors_csv,
     write_json,
@@ -99,8 +100,9 @@ def write_outputs(result: PipelineResult, out_dir: Path, anchors: str = "auto", 
         from railtraj.retile import write_corrected_tiles
         write_corrected_tiles(result, out_dir / "tiles", executor)
     seconds = dict(result.seconds, write=time.perf_counter() - t0)
-    clouds = pair_clouds(result)  # once, for metrics.json's C2C figures and the report's plots
-    metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir, clouds)
+    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run, for all QC
+    clouds = pair_clouds(result, move)  # once, for metrics.json's C2C figures and the report's plots
+    metrics = build_metrics(result, seconds, anchor_count, notes, truth_dir, clouds, move)
     if memory is not None:
         metrics["memory"] = memory()
     if config is not None:
@@ -134,7 +136,8 @@ def _write_anchors(result: PipelineResult, out_dir: Path, mode: str, notes: list
 
 
 def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_count: int, notes: list[str],
-                  truth_dir: Path | None, clouds: list[PairClouds] | None = None) -> dict[str, Any]:
+                  truth_dir: Path | None, clouds: list[PairClouds] | None = None,
+                  move: Regeoreferencer | None = None) -> dict[str, Any]:
     """Counts, timings per stage and QC figures before and after correction."""
     statuses: dict[str, int] = {}
     stage_seconds: dict[str, float] = {}
@@ -156,7 +159,7 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
         },
         "seconds": {**{k: round(v, 3) for k, v in seconds.items()},
                     "per_stage_total": {k: round(v, 3) for k, v in stage_seconds.items()}},
-        "qc": qc_figures(result, clouds),
+        "qc": qc_figures(result, clouds, move),
         "adjustment": result.adjustment,
         "control": control_residuals(result.control, result.trajectories, result.corrected),
         "notes": notes,

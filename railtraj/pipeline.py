@@ -318,15 +318,17 @@ def _overlap_times(pair: TilePair, tile_a: PointTile, tile_b: PointTile) -> dict
     return out
 
 
-def qc_figures(result: PipelineResult, clouds: list[PairClouds] | None = None) -> dict[str, Any]:
+def qc_figures(result: PipelineResult, clouds: list[PairClouds] | None = None,
+               move: Regeoreferencer | None = None) -> dict[str, Any]:
     """Tie residuals and C2C distances before and after correction, overall and per pair
-    (``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, computed here if not given)."""
+    (``clouds``: :func:`railtraj.qc.pair_clouds` of ``result``, and ``move``, its trajectories'
+    :class:`~railtraj.georef.Regeoreferencer`: built here if not given)."""
     before, after = [], []
-    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
+    move = move or Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
     for ties in result.ties:
         before.append(tie_residuals(ties))
         after.append(tie_residuals(ties, move))
-    clouds = pair_clouds(result) if clouds is None else clouds
+    clouds = pair_clouds(result, move) if clouds is None else clouds
     per_pair = []
     for c in clouds:
         o = result.pairs[c.index].offset

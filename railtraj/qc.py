@@ -65,12 +65,12 @@ class PairClouds:
         return float(np.median(self.c2c_after)) if len(self.c2c_after) else float("nan")
 
 
-def pair_clouds(result) -> list[PairClouds]:
+def pair_clouds(result, move: Regeoreferencer | None = None) -> list[PairClouds]:
     """Samples and C2C distances of every tile pair that has points in both runs: each pair's
     samples moved with the corrected trajectories (as re-georeferencing the tiles would), and
     run b's distances to the nearest point of run a's, before and after."""
     out = []
-    move = Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
+    move = move or Regeoreferencer(result.trajectories, result.corrected)  # one interpolator per run
     for k, pr in enumerate(result.pairs):
         a, b = pr.sample_a, pr.sample_b
         if len(a) == 0 or len(b) == 0:

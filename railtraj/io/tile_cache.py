@@ -72,13 +72,15 @@ class TileCache:
                 array.flags.writeable = False
         self._tiles[key] = tile
         self._bytes += size
-        while self._bytes > self.budget:
-            _, old = self._tiles.popitem(last=False)
-            self._bytes -= tile_bytes(old)
+        self._evict()
 
     def resize(self, budget_gb: float) -> None:
         """Change the budget, dropping the oldest tiles beyond it."""
         self.budget = int(budget_gb * 2**30)
+        self._evict()
+
+    def _evict(self) -> None:
+        """Drop the least recently used tiles until the cache fits its budget."""
         while self._tiles and self._bytes > self.budget:
             _, old = self._tiles.popitem(last=False)
             self._bytes -= tile_bytes(old)
