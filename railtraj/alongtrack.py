@@ -47,7 +47,8 @@ class AlongTrackOptions:
     enabled: bool = True
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
-    curvature_sd: float = 0.0001    # m/m^2: what the mean of two measured rates misses of the drift's bend
+    rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders (its bend as white noise)
+    rate_gate: float = 3.0          # a pair's rate this many sd off the chain's counts no more than that
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
@@ -147,6 +148,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                        "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
                        "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
                        "candidate_shifts_m": []})
+    out = [_within_reach(o, options) for o in out]
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
@@ -236,8 +238,35 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
-                float(np.asarray(pw["gradient"], float) @ direction) * sign, float(np.sqrt(direction @ cov @ direction)),
+                _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction))
+
+
+def _rate(o: TileOffset, gradient: np.ndarray, direction: np.ndarray, sign: float, traj_b: Trajectory) -> float:
+    """d u / d s: how fast the pair's along-track offset ``u = d . direction`` changes per metre
+    of run b's travel.
+
+    Two terms: the curve's own gradient, and, on a curved track, the turn of the direction
+    itself, which moves the offset's across component into the along one at ``curvature x
+    across`` per metre. On a 540 m radius with 1.5 m across, that is 2.9 mm/m: the chain's
+    prediction through a curved station fell 0.3-0.4 m short without it, and no pair there
+    could be fixed.
+    """
+    left = np.array([-direction[1], direction[0], 0.0])
+    return float(gradient @ direction) * sign + _curvature(traj_b, float(o.info["time_b"])) * float(o.d @ left)
+
+
+def _curvature(traj: Trajectory, t: float, half: float = 5.0) -> float:
+    """Signed curvature (1/m, left turns positive) of the run's track in plan at ``t``: the turn
+    of its direction of travel over ``half`` metres either side."""
+    speed = float(np.linalg.norm(_velocity(traj, t)))
+    if speed <= 0:
+        return 0.0
+    dt = half / speed
+    lo, hi = max(t - dt, traj.span[0]), min(t + dt, traj.span[1])  # near a run's ends: what it covered
+    a, b = _direction(traj, lo), _direction(traj, hi)
+    travelled = speed * (hi - lo)
+    return float(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b)) / max(travelled, 1e-6)
 
 
 def _along_frame(o: TileOffset, trajectories: dict[str, Trajectory]) -> tuple[np.ndarray, float]:
@@ -274,8 +303,9 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
     * that candidate is within ``3 sd`` of the prediction, and
     * the runner-up, or an alias one ``min_period`` away if the pair shows no other candidate,
       costs at least ``min_margin`` more (prediction misfit plus the capped fitness evidence),
-    * and, for another alias than the matcher's, no other candidate lies within half
-      ``min_period`` of it: a noisy profile's peaks crowd, and one of them 8 cm off the truth
+    * and, for another alias than the matcher's, no other candidate lies within ``min_period``
+      of it (two aliases are a period apart): a noisy profile's peaks crowd, and one of them
+      15 cm off the truth (0.36 m from the next peak, in a ring-jointed tube) and one 8 cm off
       was fixed next to a precise prediction (a featureless tunnel near its portal).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
@@ -303,9 +333,9 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             unseen = (p.u[best] - k * options.min_period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
-            # peaks closer than half the shortest period cannot both be aliases: one is the
+            # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that
-            crowded = p.shift[best] != 0 and (np.abs(p.shift - p.shift[best]) < 0.5 * options.min_period).sum() > 1
+            crowded = p.shift[best] != 0 and (np.abs(p.shift - p.shift[best]) < options.min_period).sum() > 1
             result[i] = (float(p.shift[best]), margin, "ambiguous")
             if near and not crowded and margin >= options.min_margin:
                 newly.append((i, best, margin))
@@ -321,17 +351,16 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
 
     A pair measures its rate from the slope of its own curve of 3-6 windows; most come within
     3 mm/m of the truth, but a curve bent by one stray window is 10-16 mm/m off (simulated
-    18-20 m/s surveys). Two such neighbours' disagreement was what widened the prediction
-    between them (by half their difference times the distance), and with it every margin, so
-    a whole tunnel section stayed unresolved although its pairs were right. The rate changes
+    18-20 m/s surveys). :func:`_smooth` holds such a rate at 3 sd, but only once the chain
+    before it knows its rate; this check looks both ways, so a stray near a chain's start is
+    caught too. The rate changes
     slowly along the track, so within ``rate_radius`` it is a straight line of chainage: fitted
     to the neighbours' rates with Tukey's biweight (rates more than ``4.685 * rate_sd`` off
     the line get no weight), its value at the pair replaces the pair's own when the two differ
     by more than ``3 * rate_sd``. (Replacing every rate cost a 0.75 m-sleeper tunnel its chain:
     near the portals the rate bends by 10 mm/m within 30 m, and the line through a few
     neighbours pulled good rates 3-5 mm/m off.) Where fewer than 4
-    neighbours, or fewer than half of them, agree on a line, the pair keeps its own rate (and
-    the prediction stays as wide as its disagreement with its neighbours).
+    neighbours, or fewer than half of them, agree on a line, the pair keeps its own rate.
     """
     if options.rate_radius <= 0 or len(chain) < 4:
         return chain
@@ -361,38 +390,52 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
 
 
 def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother):
-    the offset drifts with the pairs' measured rate, is observed as 0 +- the trajectories' sd at
-    every pair and as its fixed candidate at fixed pairs."""
+    """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother).
+
+    The state is the offset and its rate (per metre of run b's travel); the rate wanders as a
+    random walk of density ``rate_walk`` (the drift's bend as white noise, as in the
+    adjustment's smoothness), so the offset between two pairs follows the rate the pairs
+    around them agree on, not just the mean of two. Observed at every pair: its measured rate
+    (``rate_sd``), the offset as 0 +- the trajectories' sd, and its fixed candidate at fixed
+    pairs.
+
+    A rate more than ``rate_gate`` sd off what the chain expects is one stray window bending a
+    pair's curve (16 mm/m against its neighbours' 1-5 mm/m, on a pair whose own fit was 24 cm
+    off): its variance is raised until it sits at ``rate_gate`` sd, so it cannot drag the
+    prediction onto its own candidate.
+    """
     n = len(chain)
-    xf, pf = np.zeros(n), np.zeros(n)  # filtered
-    xp, pp = np.zeros(n), np.zeros(n)  # predicted
-    q = np.zeros(n)
+    xf, pf = np.zeros((n, 2)), np.zeros((n, 2, 2))  # filtered
+    xp, pp = np.zeros((n, 2)), np.zeros((n, 2, 2))  # predicted
+    q = options.rate_walk**2
     for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
         if i == 0:
-            xp[i], pp[i] = 0.0, 1e6
+            xp[i], pp[i] = np.zeros(2), np.diag([1e6, 1.0])
         else:
             ds = p.s - chain[i - 1].s
-            # two rates that disagree (a poorly fitted pair) widen the prediction by their difference
-            q[i] = ((options.rate_sd * ds) ** 2 + (0.5 * options.curvature_sd * ds**2) ** 2
-                    + (0.5 * (p.rate - chain[i - 1].rate) * ds) ** 2)
-            xp[i] = xf[i - 1] + 0.5 * (p.rate + chain[i - 1].rate) * ds
-            pp[i] = pf[i - 1] + q[i]
-        x, v = xp[i], pp[i]
+            F = np.array([[1.0, ds], [0.0, 1.0]])
+            xp[i] = F @ xf[i - 1]
+            pp[i] = F @ pf[i - 1] @ F.T + q * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
+        x, P = xp[i].copy(), pp[i].copy()
         # the smoother's error is one error over prior_correlation metres: count it once there
         gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)
         inflate = max(1.0, options.prior_correlation / max(gap, 1.0)) if np.isfinite(gap) else 1.0
-        for z, r in ((0.0, p.prior_var * inflate), (fixed[i], p.sd**2)):
-            if np.isfinite(z):
-                k = v / (v + r)
-                x, v = x + k * (z - x), (1 - k) * v
-        xf[i], pf[i] = x, v
+        for row, z, r in ((1, p.rate, options.rate_sd**2), (0, 0.0, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
+            if not np.isfinite(z):
+                continue
+            s = P[row, row] + r
+            if row == 1:  # a stray rate is held at rate_gate sd
+                s = max(s, (z - x[row]) ** 2 / options.rate_gate**2)
+            k = P[:, row] / s
+            x, P = x + k * (z - x[row]), P - np.outer(k, P[row])
+        xf[i], pf[i] = x, P
     xs, ps = xf.copy(), pf.copy()
     for i in range(n - 2, -1, -1):
-        g = pf[i] / pp[i + 1]
-        xs[i] = xf[i] + g * (xs[i + 1] - xp[i + 1])
-        ps[i] = pf[i] + g**2 * (ps[i + 1] - pp[i + 1])
-    return xs, ps
+        F = np.array([[1.0, chain[i + 1].s - chain[i].s], [0.0, 1.0]])
+        g = pf[i] @ F.T @ np.linalg.inv(pp[i + 1])
+        xs[i] = xf[i] + g @ (xs[i + 1] - xp[i + 1])
+        ps[i] = pf[i] + g @ (ps[i + 1] - pp[i + 1]) @ g.T
+    return xs[:, 0], ps[:, 0, 0]
 
 
 def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTrackOptions) -> float:
@@ -412,6 +455,32 @@ def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTr
     if o.status == "degenerate":
         extra += max(options.max_pair_sd**2 - sd**2, 0.0)
     return extra
+
+
+def _within_reach(o: TileOffset, options: AlongTrackOptions) -> TileOffset:
+    """An ``ok`` pair with only the ties its curve places to ``max_ok_sd``.
+
+    Ties carry the pair's curve of offsets to each keypoint: its offset at the reference point
+    plus its gradient times the distance. The gradient comes from 3-6 windows that can share a
+    bias (on a curve through a station, five windows of one pair drifted 6 mm/m off the truth
+    while scattering 1 cm about their line), so a tie ``x`` metres away is known to
+    ``sqrt(sd^2 + (rate_sd x)^2)`` only; at the tile's end that pair's tie was 8.3 cm off. Ties
+    beyond ``max_ok_sd`` are dropped (the nearest one always stays), the others share the
+    pair's weight of one.
+    """
+    pw = o.info.get("piecewise", {})
+    if not (o.ok and o.ties is not None and len(o.ties) and "ref_point" in pw and "fit_cov" in pw):
+        return o
+    axis = np.asarray(pw["axis"], float)
+    reach = (o.ties.xyz_b - np.asarray(pw["ref_point"], float)) @ axis
+    var = float(axis @ np.asarray(pw["fit_cov"], float) @ axis) + (options.rate_sd * reach) ** 2
+    keep = (var <= options.max_ok_sd**2) | (np.abs(reach) == np.abs(reach).min())
+    if keep.all():
+        return o
+    t = o.ties
+    ties = Ties(t.run_a, t.run_b, t.time_a[keep], t.time_b[keep], t.xyz_a[keep], t.xyz_b[keep],
+                np.full(int(keep.sum()), 1.0 / keep.sum()))
+    return replace(o, ties=ties, info=dict(o.info, ties_beyond_reach=int((~keep).sum())))
 
 
 def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, Trajectory],
