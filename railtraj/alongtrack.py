@@ -306,7 +306,10 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
     * and, for another alias than the matcher's, no other candidate lies within ``min_period``
       of it (two aliases are a period apart): a noisy profile's peaks crowd, and one of them
       15 cm off the truth (0.36 m from the next peak, in a ring-jointed tube) and one 8 cm off
-      was fixed next to a precise prediction (a featureless tunnel near its portal).
+      was fixed next to a precise prediction (a featureless tunnel near its portal). The
+      matcher's own choice counts as such a peak: a profile's only peak 16 cm from the
+      windows' fit is a disagreement, not an alias (it sat 11 cm off, in the demo's circular
+      section).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
     chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
@@ -334,8 +337,10 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
             # peaks closer than the shortest period cannot both be aliases: one is the
-            # profile's noise, and where another alias sits is then known no better than that
-            crowded = p.shift[best] != 0 and (np.abs(p.shift - p.shift[best]) < options.min_period).sum() > 1
+            # profile's noise, and where another alias sits is then known no better than that;
+            # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not
+            others = np.append(p.shift[np.arange(len(p.shift)) != best], 0.0)
+            crowded = p.shift[best] != 0 and bool((np.abs(others - p.shift[best]) < options.min_period).any())
             result[i] = (float(p.shift[best]), margin, "ambiguous")
             if near and not crowded and margin >= options.min_margin:
                 newly.append((i, best, margin))

@@ -247,3 +247,15 @@ def test_an_ok_pair_keeps_only_the_ties_its_rate_places_to_max_ok_sd():
     assert np.allclose(np.sort(np.abs(kept.xyz_b[:, 0] - ref[0])), np.sort(np.abs(along[np.abs(along) <= reach])))
     assert abs(kept.weight.sum() - 1.0) < 1e-12
     assert len(_within_reach(o, AlongTrackOptions(rate_sd=0.0)).ties) == 9  # a known rate reaches the whole tile
+
+
+def test_a_profile_peak_less_than_a_period_from_the_windows_fit_is_no_alias_to_move_to():
+    """The matcher's windows put a pair 0.16 m off its profile's peak: two places closer than
+    any period cannot both be aliases, so the pair is left unresolved rather than moved onto
+    one of them (where the demo's featureless section had such a peak 11 cm off)."""
+    offsets, trajs, s = _chain({5: 0.16, 7: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    row = next(r for r in report if r["tile_a"] == offsets[5].tile_a)
+    assert out[5].status == "ambiguous" and row["verdict"] == "ambiguous"
+    assert abs(row["shift_m"] + 0.16) < 0.03  # the peak is reported as the pair's candidate
+    assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < 0.01  # a real alias is
