@@ -48,7 +48,7 @@ class AlongTrackOptions:
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
     rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders (its bend as white noise)
-    rate_gate: float = 3.0          # a pair's rate this many sd off the chain's counts no more than that
+    rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
@@ -407,7 +407,8 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
     A rate more than ``rate_gate`` sd off what the chain expects is one stray window bending a
     pair's curve (16 mm/m against its neighbours' 1-5 mm/m, on a pair whose own fit was 24 cm
     off): its variance is raised until it sits at ``rate_gate`` sd, so it cannot drag the
-    prediction onto its own candidate.
+    prediction onto its own candidate. (At 3 sd, a drift whose rate climbed from -4 to +23 mm/m
+    within 60 m, all its pairs agreeing, was held back and its chain lost.)
     """
     n = len(chain)
     xf, pf = np.zeros((n, 2)), np.zeros((n, 2, 2))  # filtered
