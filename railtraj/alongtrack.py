@@ -356,7 +356,7 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
 
     A pair measures its rate from the slope of its own curve of 3-6 windows; most come within
     3 mm/m of the truth, but a curve bent by one stray window is 10-16 mm/m off (simulated
-    18-20 m/s surveys). :func:`_smooth` holds such a rate at 3 sd, but only once the chain
+    18-20 m/s surveys). :func:`_smooth` holds such a rate at ``rate_gate`` sd, but only once the chain
     before it knows its rate; this check looks both ways, so a stray near a chain's start is
     caught too. The rate changes
     slowly along the track, so within ``rate_radius`` it is a straight line of chainage: fitted
