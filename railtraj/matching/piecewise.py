@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
+from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
 
@@ -110,6 +111,15 @@ def track_frame(axis: np.ndarray) -> np.ndarray:
     """Rows along, across (left) and up for a horizontal unit ``axis``."""
     up = np.array([0.0, 0.0, 1.0])
     return np.vstack([axis, np.cross(up, axis), up])
+
+
+_trees = ArrayMemo(cKDTree)
+
+
+def reference_tree(xyz: np.ndarray) -> cKDTree:
+    """KD-tree of run a's raw points for :func:`along_profile`, built once per tile while its
+    array is alive (:mod:`railtraj.matching.memo`)."""
+    return _trees(xyz)
 
 
 def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
@@ -317,7 +327,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     axis = track_axis(information)
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
-    tree = cKDTree(ref_xyz) if tree is None else tree
+    tree = reference_tree(ref_xyz) if tree is None else tree
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, **window_options)
     if len(windows) == 0:
         return None

@@ -11,12 +11,12 @@ vertical by 9 mm). Correspondences are found on the voxel centroids (nearest wit
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.neighbours import smallest_eigen
 from railtraj.matching.voxel import VoxelGrid, block_covariance, voxelize
 
@@ -81,26 +81,14 @@ def tilt_variance(n: np.ndarray, evals: np.ndarray) -> np.ndarray:
     return np.minimum(var, 0.5)
 
 
-_cache: list[tuple[weakref.ref, float, PlaneTarget]] = []
+_targets = ArrayMemo(build_target)
 
 
 def cached_target(xyz: np.ndarray, voxel: float = 0.05) -> PlaneTarget:
-    """:func:`build_target`, remembered for the last two clouds while those arrays are alive.
+    """:func:`build_target`, remembered for the last two clouds while those arrays are alive
+    (:mod:`railtraj.matching.memo`).
 
-    A matcher checks several vote peaks and then refines, all against the same reference. The
-    cache holds only weak references to the arrays and drops a target as soon as its cloud is
-    garbage-collected, so a finished tile pair does not keep its reference surface in memory.
+    A matcher checks several vote peaks and then refines, all against the same reference, and a
+    tile is the reference of up to three tile pairs; a finished tile's target goes with its array.
     """
-    for ref, v, target in _cache:
-        if ref() is xyz and v == voxel:
-            return target
-    target = build_target(xyz, voxel)
-    ref = weakref.ref(xyz)
-    _cache.insert(0, (ref, voxel, target))
-    del _cache[2:]
-    weakref.finalize(xyz, _forget, ref)
-    return target
-
-
-def _forget(ref: weakref.ref) -> None:
-    _cache[:] = [entry for entry in _cache if entry[0] is not ref]
+    return _targets(xyz, voxel)
