@@ -3,8 +3,8 @@
 A tile is the reference (run a) of one to three tile pairs, and the tile cache
 (:mod:`railtraj.io.tile_cache`) hands every pair whose crop box holds the whole tile the same
 read-only array. Its plane target and KD-tree are therefore built once and serve all those pairs
-(and the several fits of one pair) instead of once per pair: on the demo survey 46 builds of each
-instead of 88-94. Entries are keyed by the array's identity, not its contents (hashing 200 k
+(and the several fits of one pair) instead of once per pair: on the demo survey 45 builds of each
+instead of 88. Entries are keyed by the array's identity, not its contents (hashing 200 k
 points would cost more than some builds), and hold only a weak reference to it, so a finished
 tile's entries go with its array.
 """
