@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -129,7 +130,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for label, survey in jobs:
         for executor in executors:
-            out = args.work / "out" / f"{label.replace(' ', '_')}-{executor}"
+            folder = re.sub(r"[^\w.-]+", "_", label).strip("_")  # "demo (cached)": no ( ) in a Hydra override
+            out = args.work / "out" / f"{folder}-{executor}"
             print(row(label, executor, job(survey, out, executor)), flush=True)
 
 

@@ -32,8 +32,11 @@ def tile_bytes(tile: PointTile) -> int:
 
 
 def crop(tile: PointTile, lo: np.ndarray, hi: np.ndarray) -> PointTile:
-    """The points of ``tile`` inside the inclusive box ``lo``-``hi`` (as ``read_tile(bbox=)``)."""
-    return tile.subset(((tile.xyz >= lo) & (tile.xyz <= hi)).all(axis=1))
+    """The points of ``tile`` inside the inclusive box ``lo``-``hi`` (as ``read_tile(bbox=)``);
+    ``tile`` itself when the box holds all of them (so what a matcher builds from a tile's
+    arrays, :mod:`railtraj.matching.memo`, serves every pair it is in)."""
+    inside = ((tile.xyz >= lo) & (tile.xyz <= hi)).all(axis=1)
+    return tile if inside.all() else tile.subset(inside)
 
 
 class TileCache:

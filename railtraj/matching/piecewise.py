@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
+from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
 
@@ -112,6 +113,23 @@ def track_frame(axis: np.ndarray) -> np.ndarray:
     return np.vstack([axis, np.cross(up, axis), up])
 
 
+def _pair_search_tree(xyz: np.ndarray, leafsize: int) -> cKDTree:
+    """A KD-tree for :func:`along_profile`'s pair search (``sparse_distance_matrix``): the pairs
+    found do not depend on the tree, and an unbalanced tree with 32-point leaves on run a's side,
+    4-point leaves on the window's, is searched 13 % faster (and built twice as fast) than the
+    defaults."""
+    return cKDTree(xyz, leafsize=leafsize, balanced_tree=False, compact_nodes=False)
+
+
+_trees = ArrayMemo(_pair_search_tree)
+
+
+def reference_tree(xyz: np.ndarray) -> cKDTree:
+    """KD-tree of run a's raw points for :func:`along_profile`, built once per tile while its
+    array is alive (:mod:`railtraj.matching.memo`)."""
+    return _trees(xyz, 32)
+
+
 def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
                   tau: float) -> np.ndarray:
     """Mean truncated squared distance to the reference points of ``pts + d + t axis`` per t.
@@ -127,7 +145,7 @@ def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarra
     """
     moved = pts + d
     reach = tau + float(np.abs(ts).max())
-    pairs = cKDTree(moved).sparse_distance_matrix(tree, reach, output_type="ndarray")
+    pairs = _pair_search_tree(moved, 4).sparse_distance_matrix(tree, reach, output_type="ndarray")
     diff = tree.data[pairs["j"]] - moved[pairs["i"]]
     along = diff @ axis
     nn2 = np.einsum("ij,ij->i", diff, diff)
@@ -317,7 +335,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     axis = track_axis(information)
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
-    tree = cKDTree(ref_xyz) if tree is None else tree
+    tree = reference_tree(ref_xyz) if tree is None else tree
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, **window_options)
     if len(windows) == 0:
         return None

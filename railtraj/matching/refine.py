@@ -52,10 +52,11 @@ def crop(target: PlaneTarget, moving: np.ndarray, d: np.ndarray, margin: float) 
     return moving[target.inside(moving + d, margin)]
 
 
-def _linearize(target: PlaneTarget, q: np.ndarray, max_dist: float, kernel: float):
+def _linearize(target: PlaneTarget, q: np.ndarray, nearest, kernel: float):
     """Reference planes of the points ``q`` that found one: (mask, index, normals, residuals,
-    weights) and every point's distance to the nearest reference voxel (inf beyond ``max_dist``)."""
-    idx, dist = target.nearest(q, max_dist)
+    weights) and every point's distance to the nearest reference voxel (``nearest(q)``: inf
+    beyond its ``max_dist``)."""
+    idx, dist = nearest(q)
     ok = idx >= 0
     idx = idx[ok]
     n = target.normal[idx]
@@ -104,9 +105,10 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
     npar = 3 if translation_only else 6
     sigma, n_used, converged, it, prev = np.nan, 0, False, 0, None
     info, dist = np.full((3, 3), np.nan), np.full(len(moving), np.inf)
+    nearest = target.tracker(max(max_dist, fitness_radius))
     for it in range(iterations + 1):
         q = (moving - center) @ rot.T + center + d
-        ok, idx, n, r, w, dist = _linearize(target, q, max(max_dist, fitness_radius), kernel)
+        ok, idx, n, r, w, dist = _linearize(target, q, nearest, kernel)
         n_used = int((w > 0).sum())
         if n_used < 2 * npar:
             break

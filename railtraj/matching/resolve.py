@@ -11,7 +11,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.consensus import (
@@ -23,7 +22,13 @@ from railtraj.matching.consensus import (
     failed,
     make_ties,
 )
-from railtraj.matching.piecewise import alias_ratio, piecewise_fit, reference_times, window_ties
+from railtraj.matching.piecewise import (
+    alias_ratio,
+    piecewise_fit,
+    reference_times,
+    reference_tree,
+    window_ties,
+)
 from railtraj.matching.refine import directions, sample
 from railtraj.matching.target import cached_target
 from railtraj.matching.voting import Votes, find_peaks, slices
@@ -110,7 +115,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     whose offsets follow the curve."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
-    tree = cKDTree(tile_a.xyz)  # run a's raw points, for the along-track profiles of every fit
+    tree = reference_tree(tile_a.xyz)  # run a's raw points, for the along-track profiles of every fit
 
     def fit_from(start: np.ndarray):
         inside = target.inside(tile_b.xyz + start, 0.3)

@@ -11,12 +11,12 @@ vertical by 9 mm). Correspondences are found on the voxel centroids (nearest wit
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.neighbours import smallest_eigen
 from railtraj.matching.voxel import VoxelGrid, block_covariance, voxelize
 
@@ -40,9 +40,63 @@ class PlaneTarget:
         idx = np.where(np.isfinite(dist), idx, -1)
         return idx, dist
 
+    def tracker(self, max_dist: float) -> NearestTracker:
+        """:meth:`nearest` for one set of points that moves in small steps (see NearestTracker)."""
+        return NearestTracker(self.tree, max_dist)
+
     def inside(self, p: np.ndarray, margin: float) -> np.ndarray:
         """Mask of points at least ``margin`` inside the reference's bounding box (x and y)."""
         return ((p[:, :2] >= self.lo[:2] + margin) & (p[:, :2] <= self.hi[:2] - margin)).all(axis=1)
+
+
+class NearestTracker:
+    """:meth:`PlaneTarget.nearest` (same indices, same distances to the bit) for points that move
+    a little between calls, as in the Gauss-Newton iterations of a point-to-plane fit.
+
+    Each search also finds the second-nearest centroid, within ``max_dist + slack``. A point that
+    has since moved by ``delta`` keeps its nearest centroid while ``d1 + delta < d2 - delta``
+    (no other centroid can have come closer) and stays without one while ``reach - delta >
+    max_dist``; only the other points are searched again. Distances to kept centroids are
+    recomputed as the KD-tree computes them (squared coordinate differences summed in order,
+    found when below ``max_dist**2``), so nothing differs from a fresh query. After the first
+    steps of a fit most points move by less than a millimetre and are not searched again.
+    """
+
+    MARGIN = 1e-9  # m; far above rounding (1e-17 m), so a kept answer is never a near tie
+
+    def __init__(self, tree: cKDTree, max_dist: float, slack: float = 0.02) -> None:
+        self.tree, self.max_dist, self.reach = tree, max_dist, max_dist + slack
+        self.q0 = self.idx = self.d1 = self.d2 = None
+        self.searched = 0  # points searched so far (for tests and benchmarks)
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(q, float)
+        if self.q0 is None or len(q) != len(self.q0):
+            self.q0, self.idx = q.copy(), np.zeros(len(q), np.int64)
+            self.d1, self.d2 = np.full(len(q), np.inf), np.full(len(q), np.inf)
+            redo = np.arange(len(q))
+        else:
+            delta = np.sqrt(((q - self.q0) ** 2).sum(axis=1))
+            found = np.isfinite(self.d1)
+            kept = np.where(found, self.d1 + delta < np.minimum(self.d2, self.reach) - delta - self.MARGIN,
+                            self.reach - delta > self.max_dist + self.MARGIN)
+            redo = np.flatnonzero(~kept)
+        if len(redo):
+            d, i = self.tree.query(q[redo], k=2, distance_upper_bound=self.reach, workers=-1)
+            tie = np.flatnonzero(np.isfinite(d[:, 0]) & (d[:, 0] == d[:, 1]))
+            if len(tie):  # two centroids equally near (1 mm LAS coordinates): take the one k=1 takes
+                i[tie, 0] = self.tree.query(q[redo[tie]], distance_upper_bound=self.reach, workers=-1)[1]
+            self.q0[redo], self.idx[redo], self.d1[redo], self.d2[redo] = q[redo], i[:, 0], d[:, 0], d[:, 1]
+            self.searched += len(redo)
+        idx = np.where(np.isfinite(self.d1), self.idx, -1)
+        dist = np.full(len(q), np.inf)
+        has = np.flatnonzero(idx >= 0)
+        diff = q[has] - self.tree.data[idx[has]]
+        d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]
+        near = d2 < self.max_dist * self.max_dist
+        dist[has[near]] = np.sqrt(d2[near])
+        idx[has[~near]] = -1
+        return idx, dist
 
 
 def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
@@ -81,26 +135,14 @@ def tilt_variance(n: np.ndarray, evals: np.ndarray) -> np.ndarray:
     return np.minimum(var, 0.5)
 
 
-_cache: list[tuple[weakref.ref, float, PlaneTarget]] = []
+_targets = ArrayMemo(build_target)
 
 
 def cached_target(xyz: np.ndarray, voxel: float = 0.05) -> PlaneTarget:
-    """:func:`build_target`, remembered for the last two clouds while those arrays are alive.
+    """:func:`build_target`, remembered for the last two clouds while those arrays are alive
+    (:mod:`railtraj.matching.memo`).
 
-    A matcher checks several vote peaks and then refines, all against the same reference. The
-    cache holds only weak references to the arrays and drops a target as soon as its cloud is
-    garbage-collected, so a finished tile pair does not keep its reference surface in memory.
+    A matcher checks several vote peaks and then refines, all against the same reference, and a
+    tile is the reference of up to three tile pairs; a finished tile's target goes with its array.
     """
-    for ref, v, target in _cache:
-        if ref() is xyz and v == voxel:
-            return target
-    target = build_target(xyz, voxel)
-    ref = weakref.ref(xyz)
-    _cache.insert(0, (ref, voxel, target))
-    del _cache[2:]
-    weakref.finalize(xyz, _forget, ref)
-    return target
-
-
-def _forget(ref: weakref.ref) -> None:
-    _cache[:] = [entry for entry in _cache if entry[0] is not ref]
+    return _targets(xyz, voxel)

@@ -35,6 +35,17 @@ def test_crops_equal_cropped_reads_point_for_point(tiles):
     assert (cache.reads, cache.hits) == (1, 1)
 
 
+def test_a_box_holding_the_whole_tile_gives_the_cached_tile_itself(tiles):
+    """So that what a matcher builds from a tile (its plane target, its KD-tree) serves every
+    pair the tile is in (railtraj.matching.memo keys them by the array's identity)."""
+    cache = TileCache(1.0)
+    full = cache.read(tiles[0])
+    box = (full.xyz.min(axis=0), full.xyz.max(axis=0))  # inclusive: every point is inside
+    assert cache.read(tiles[0], bbox=box) is full
+    part = cache.read(tiles[0], bbox=(box[0], box[1] - [1.0, 0.0, 0.0]))
+    assert part is not full and 0 < len(part) < len(full)
+
+
 def test_cached_tiles_are_read_only(tiles):
     tile = TileCache(1.0).read(tiles[0])
     with pytest.raises(ValueError):

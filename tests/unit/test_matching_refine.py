@@ -73,3 +73,38 @@ def test_evaluation_only_does_not_move():
     moving = np.random.default_rng(1).uniform(0, 1, (500, 3))
     fit = point_to_plane(target, moving, np.zeros(3), iterations=0)
     assert (fit.d == 0).all()
+
+
+def test_nearest_tracker_answers_exactly_as_fresh_queries(ribbed):
+    """The tracker skips points whose nearest centroid cannot have changed; every answer must
+    still equal a fresh KD-tree query, index and distance to the bit."""
+    target, b, _ = ribbed
+    rng = np.random.default_rng(3)
+    q = np.vstack([sample(b.xyz, 5_000, seed=4), rng.uniform(-20, 20, (200, 3))])  # and far points
+    tracker = target.tracker(0.2)
+    for step in (0.0, 0.05, 0.01, 0.002, 3e-4, 1e-5, 0.0):
+        q = q + rng.normal(scale=step, size=3) + rng.normal(scale=step / 10, size=q.shape)
+        idx, dist = tracker(q)
+        want_idx, want_dist = target.nearest(q, 0.2)
+        np.testing.assert_array_equal(idx, want_idx)
+        np.testing.assert_array_equal(dist, want_dist)
+    assert (want_idx < 0).any() and (want_idx >= 0).any()
+    assert tracker.searched < 3 * len(q)  # 7 calls: small steps re-use the earlier searches
+
+
+def test_nearest_tracker_breaks_ties_as_the_kd_tree_does():
+    """LAS coordinates are millimetres, so two centroids can be exactly equally near a point (seen
+    on the demo survey); the tracker must pick the one a fresh query picks. Here: a lattice of
+    binary fractions and queries halfway between lattice points."""
+    g = np.arange(40) / 16.0
+    lattice = np.stack(np.meshgrid(g, g, [0.0, 1 / 16]), axis=-1).reshape(-1, 3)
+    target = build_target(lattice, 0.05)  # one point per voxel: the centroids are the lattice
+    rng = np.random.default_rng(5)
+    q = lattice[rng.choice(len(lattice), 2_000)] + [1 / 32, 0.0, 0.0]
+    tracker, ties = target.tracker(0.2), 0
+    for step in ([0.0, 0.0, 0.0], [1 / 16, 0.0, 0.0], [1 / 64, 1 / 32, 0.0], [0.0, 0.0, 0.0]):
+        q = q + step
+        np.testing.assert_array_equal(tracker(q)[0], target.nearest(q, 0.2)[0])
+        d, _ = target.tree.query(q, k=2, distance_upper_bound=0.2)
+        ties += int((np.isfinite(d[:, 0]) & (d[:, 0] == d[:, 1])).sum())
+    assert ties > 100  # the test does meet ties
