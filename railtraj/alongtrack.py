@@ -547,7 +547,7 @@ def _at_predicted(o: TileOffset, u0: float, along: float, mu: float, var: float,
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:
     """Horizontal velocity (m/s) at time ``t``, over half a second."""
-    xyz, _ = traj.interpolate(np.clip([t - 0.25, t + 0.25], *traj.span))
+    xyz = traj.position_at(np.clip([t - 0.25, t + 0.25], *traj.span))
     v = (xyz[1] - xyz[0]) / 0.5
     v[2] = 0.0
     return v

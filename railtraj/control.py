@@ -144,7 +144,7 @@ def _locate(survey: Survey, run_id: str, traj: Trajectory, xyz: np.ndarray, cid:
     """((time, seen), None) for the bright cluster near ``xyz`` in ``run_id``'s tiles, or
     (None, note). A point the run never passed gives (None, None)."""
     t = float(abreast_time(traj, xyz)[0])
-    pos, _ = traj.interpolate(np.array([t]))
+    pos = traj.position_at(np.array([t]))
     if np.linalg.norm(pos[0, :2] - xyz[:2]) > 30.0:
         return None, None  # the run does not pass this point
     sd = traj.sd_at(np.array([t]))

@@ -54,7 +54,7 @@ def anchor_rows(result: PipelineResult) -> dict[str, np.ndarray]:
         t = np.concatenate(times)
         _, first = np.unique(np.floor(t / ANCHOR_INTERVAL_S), return_index=True)
         t = np.sort(t[first])
-        xyz, _ = traj.interpolate(t)
+        xyz = traj.position_at(t)
         sd = traj.sd_at(t)
         sd = np.full((len(t), 3), np.nan) if sd is None else sd
         cols["run_id"] += [run_id] * len(t)

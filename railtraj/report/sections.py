@@ -86,7 +86,7 @@ def _observed_xy(result, pr) -> np.ndarray:
     t = pr.offset.info.get("time_a", np.nan)
     traj = result.trajectories.get(pr.offset.run_a)
     if traj is not None and np.isfinite(t) and traj.time[0] <= t <= traj.time[-1]:
-        return traj.interpolate(np.array([t]))[0][0, :2]
+        return traj.position_at(np.array([t]))[0, :2]
     if len(pr.sample_a):
         return np.median(pr.sample_a.xyz[:, :2], axis=0)
     return np.zeros(2)
