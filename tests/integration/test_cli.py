@@ -116,3 +116,17 @@ def test_write_tiles_regeoreferences_every_tile(survey, tmp_path):
         a, b = read_tile(inputs[0]), read_tile(written[0])      # identity: the same cloud back
         np.testing.assert_array_equal(a.gps_time, b.gps_time)
         assert np.abs(a.xyz - b.xyz).max() <= 0.0011
+
+
+def test_help_lists_every_registered_stage_and_the_defaults():
+    """``railtraj --help`` answers without composing through Hydra: it must still name every
+    stage the registry holds (third-party plugins included) and mark the defaults."""
+    from railtraj.plugins import registry
+
+    out = railtraj("--help")
+    assert out.returncode == 0, out.stderr
+    lines = {line.split()[0]: line for line in out.stdout.splitlines() if line.startswith("  ") and line.split()}
+    for spec in registry().specs():
+        assert re.search(rf"[\s,\[]{re.escape(spec.name)}[\],]|[\s,\[]{re.escape(spec.name)}$", lines[spec.kind]), spec
+    assert "[iss]" in lines["detector"] and "[spline]" in lines["optimizer"] and "[global]" in lines["pipeline"]
+    assert "survey_dir" in lines and "max_memory_gb" in lines
