@@ -339,7 +339,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that;
             # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not
-            others = np.append(p.shift[np.arange(len(p.shift)) != best], 0.0)
+            others = np.append(np.delete(p.shift, best), 0.0)
             crowded = p.shift[best] != 0 and bool((np.abs(others - p.shift[best]) < options.min_period).any())
             result[i] = (float(p.shift[best]), margin, "ambiguous")
             if near and not crowded and margin >= options.min_margin:
