@@ -71,6 +71,7 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     from railtraj.io.atomic import atomic_write
     from railtraj.memory import MemoryMonitor
     from railtraj.pipeline import PipelineOptions, run_pipeline
+    from railtraj.sd_check import SdCheckOptions
 
     anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
     if not cfg.max_memory_gb >= 0:
@@ -96,7 +97,8 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
                               max_misalignment_m=pipe.max_misalignment_m, tile_cache_gb=pipe.tile_cache_gb,
                               crs=cfg.crs, grid_dir=grid_dir,
                               sbet_crs=sbet_crs,
-                              alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)))
+                              alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)),
+                              sd_check=SdCheckOptions(**OmegaConf.to_container(pipe.sd_check)))
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         frame_transformer(cfg.crs, sbet_crs, grid_dir)

@@ -18,6 +18,7 @@ from omegaconf import MISSING
 from railtraj.alongtrack import AlongTrackOptions
 from railtraj.errors import ConfigError
 from railtraj.plugins import registry
+from railtraj.sd_check import SdCheckOptions
 
 
 @dataclass
@@ -38,6 +39,7 @@ class PipelineConfig:
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
     tile_cache_gb: float = 1.0         # whole tiles kept per process between detection and matching
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
+    sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement
 
 
 LOCAL = PipelineConfig(name="local", pairs="all", alongtrack=AlongTrackOptions(enabled=False))

@@ -46,6 +46,7 @@ from railtraj.io.survey import (
 from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
+from railtraj.sd_check import SdCheckOptions, check_reported_sd
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,7 @@ class PipelineOptions:
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
     tile_cache_gb: float = DEFAULT_BUDGET_GB  # whole tiles kept per process between detect and match
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
+    sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)
 
 
 @dataclass
@@ -177,9 +179,14 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
-    corrected, adjustment = optimize(stages.optimizer, trajectories, ties, [r.offset for r in results], control, notes)
+    offsets = [r.offset for r in results]
+    # the optimizer weighs the runs by their sd: raise it first where the runs show it lies
+    weighed, sd_check = check_reported_sd(trajectories, ties, offsets, options.sd_check)
+    notes += sd_check["notes"]
+    corrected, adjustment = optimize(stages.optimizer, weighed, ties, offsets, control, notes)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
+    adjustment["sd_check"] = sd_check
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from railtraj.adjust.offsets import WEAK_STATUSES
 from railtraj.data import Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
 
@@ -42,10 +43,6 @@ class GtsamConfig:
     default_sd_m: float = 1.0             # prior sigma where the trajectory reports no sd
     min_sd_m: float = 0.005               # floor on the reported sd
     use_weak_offsets: bool = True         # use degenerate/ambiguous pairs in their constrained directions
-
-
-#: statuses whose offset is reliable across the track and in height, though not along it
-WEAK_STATUSES = ("degenerate", "ambiguous")
 
 
 class GtsamOptimizer:

@@ -27,17 +27,13 @@ import numpy as np
 
 from railtraj.adjust import observations as obs
 from railtraj.adjust.model import CorrectionModel
+from railtraj.adjust.offsets import offset_covariance, usable_offset
 from railtraj.adjust.solve import solve
-from railtraj.alongtrack import COARSE
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
 
 log = logging.getLogger(__name__)
 
-#: statuses whose offset is reliable across the track and in height, though not along it
-WEAK_STATUSES = ("degenerate", "ambiguous")
-#: along-track sd given to degenerate/ambiguous pairs, so that the track direction is dropped
-WEAK_ALONG_SD_M = 100.0
 #: at most this many rejected observations are listed individually in the diagnostics
 MAX_LISTED = 200
 
@@ -126,7 +122,7 @@ class SplineOptimizer:
     def _offsets(self, model: CorrectionModel, offsets: Sequence[TileOffset],
                  trajectories: dict[str, Trajectory]) -> obs.Block | None:
         cfg = self.config
-        use = [o for o in offsets if (cfg.use_weak_offsets or o.ok) and _usable_offset(o, trajectories)]
+        use = [o for o in offsets if (cfg.use_weak_offsets or o.ok) and usable_offset(o, trajectories)]
         if not use:
             return None
         ka, wa, kb, wb = [], [], [], []
@@ -136,11 +132,7 @@ class SplineOptimizer:
             ka.append(k1), wa.append(w1), kb.append(k2), wb.append(w2)
         knots = np.hstack([np.vstack(ka), np.vstack(kb)])
         w = np.hstack([-np.vstack(wa), np.vstack(wb)])
-        cov = np.stack([o.cov for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
-        for k, o in enumerate(use):  # a weak pair says nothing along the track, whatever its sd there
-            if o.status in WEAK_STATUSES:
-                axis = _track_axis(o)
-                cov[k] += WEAK_ALONG_SD_M**2 * np.outer(axis, axis)
+        cov = np.stack([offset_covariance(o) for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
         # ok pairs with ties enter through their ties; an ok pair without (resolved jointly along
         # the track) enters here in full, a weak pair in its constrained directions only
         labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
@@ -219,24 +211,6 @@ def _evaluate(model: CorrectionModel, run_id: str, times: np.ndarray, sol, cov_b
                      + 2 * w[:, 0] * w[:, 1] * sol.banded.covariance(p, q, cov_blocks)
                      + w[:, 1] ** 2 * sol.banded.covariance(q, q, cov_blocks))
     return corr, np.sqrt(np.maximum(var, 0.0))
-
-
-def _track_axis(o: TileOffset) -> np.ndarray:
-    """The pair's track direction: from its curve of offsets, else its least constrained direction."""
-    axis = o.info.get("piecewise", {}).get("axis")
-    if axis is not None:
-        return np.asarray(axis, float)
-    return np.linalg.eigh(o.cov)[1][:, -1]
-
-
-def _usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
-    """A degenerate/ambiguous pair, or an ok pair without ties, with a finite offset, covariance
-    and observation times."""
-    usable = o.status in WEAK_STATUSES or o.status == COARSE or (o.ok and (o.ties is None or not len(o.ties)))
-    if not usable or o.run_a not in trajectories or o.run_b not in trajectories:
-        return False
-    times = [o.info.get("time_a", np.nan), o.info.get("time_b", np.nan)]
-    return bool(np.isfinite(o.d).all() and np.isfinite(o.cov).all() and np.isfinite(times).all())
 
 
 __all__ = ["SplineConfig", "SplineOptimizer"]

@@ -1,0 +1,115 @@
+"""The check of the runs' reported sd: a run whose GNSS is biased near a portal while it reports
+2 cm is found by the other runs' ties, and the adjustment then follows the runs that agree."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from railtraj.builtins.spline_optimizer import SplineOptimizer
+from railtraj.data import Ties, Trajectory
+from railtraj.sd_check import SdCheckOptions, check_reported_sd
+
+LENGTH, SPEED, SD = 300.0, 10.0, 0.02
+TRAP = (100.0, 160.0)  # chainage where run a's GNSS is biased across the track
+BIAS = 0.30
+
+
+def _bias(s: np.ndarray) -> np.ndarray:
+    """A smooth multipath bias across the track (y), 0 outside TRAP."""
+    u = np.clip((s - TRAP[0]) / (TRAP[1] - TRAP[0]), 0, 1)
+    return BIAS * np.sin(np.pi * u) ** 2
+
+
+def _truth(s: np.ndarray) -> np.ndarray:
+    return np.column_stack([530000 + s, np.full_like(s, 180000.0), np.full_like(s, 10.0)])
+
+
+def _run(run_id: str, t0: float, biased: bool) -> Trajectory:
+    time = t0 + np.arange(0, LENGTH / SPEED, 0.1)
+    s = (time - t0) * SPEED
+    xyz = _truth(s)
+    if biased:
+        xyz[:, 1] += _bias(s)
+    return Trajectory(time, xyz, np.tile([0.0, 0.0, 90.0], (len(s), 1)), np.full((len(s), 3), SD), run_id=run_id)
+
+
+T0 = {"run_a": 1000.0, "run_b": 2000.0, "run_c": 3000.0}
+
+
+def _survey(runs: tuple[str, ...] = ("run_a", "run_b", "run_c"), biased: bool = True):
+    trajs = {r: _run(r, T0[r], biased and r == "run_a") for r in runs}
+    rng = np.random.default_rng(3)
+    ties = []
+    for i, a in enumerate(runs):
+        for b in runs[i + 1:]:
+            s = np.arange(5.0, LENGTH - 5.0, 2.5)
+            t_a, t_b = T0[a] + s / SPEED, T0[b] + s / SPEED
+            noise = rng.normal(0, 0.003, (2, len(s), 3))
+            xyz_a = trajs[a].position_at(t_a) + noise[0]
+            xyz_b = trajs[b].position_at(t_b) + noise[1]
+            ties.append(Ties(a, b, t_a, t_b, xyz_a, xyz_b, np.full(len(s), 0.1)))
+    return trajs, ties
+
+
+def _chainage(traj: Trajectory) -> np.ndarray:
+    return traj.xyz[:, 0] - 530000
+
+
+def test_the_biased_run_is_blamed_and_only_where_it_is_biased():
+    trajs, ties = _survey()
+    out, summary = check_reported_sd(trajs, ties, [])
+    assert set(summary["runs"]) == {"run_a"}
+    assert summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
+    s = _chainage(trajs["run_a"])
+    peak = np.abs(s - np.mean(TRAP)) < 5
+    assert np.all(out["run_a"].sd[peak, 1] >= 0.8 * BIAS)  # raised to the disagreement across the track
+    far = (s < TRAP[0] - SdCheckOptions().reach_m - 5) | (s > TRAP[1] + SdCheckOptions().reach_m + 5)
+    np.testing.assert_array_equal(out["run_a"].sd[far], trajs["run_a"].sd[far])
+    for r in ("run_b", "run_c"):
+        np.testing.assert_array_equal(out[r].sd, trajs[r].sd)
+    assert "run_a" in summary["notes"][0] and "understates" in summary["notes"][0]
+
+
+def test_with_two_runs_both_are_blamed():
+    trajs, ties = _survey(("run_a", "run_b"))
+    _, summary = check_reported_sd(trajs, ties, [])
+    assert set(summary["runs"]) == {"run_a", "run_b"}
+
+
+def test_runs_that_agree_within_their_sd_are_left_alone():
+    trajs, ties = _survey(biased=False)
+    out, summary = check_reported_sd(trajs, ties, [])
+    assert summary["disagreeing"] == 0 and not summary["runs"] and not summary["notes"]
+    for r in trajs:
+        np.testing.assert_array_equal(out[r].sd, trajs[r].sd)
+
+
+def test_disabled_changes_nothing():
+    trajs, ties = _survey()
+    out, summary = check_reported_sd(trajs, ties, [], SdCheckOptions(enabled=False))
+    assert not summary["runs"]
+    for r in trajs:
+        np.testing.assert_array_equal(out[r].sd, trajs[r].sd)
+
+
+def test_the_adjustment_then_follows_the_runs_that_agree():
+    """Taken at its word, run a's 2 cm drags the two good runs a third of the way to its bias;
+    after the check they are pulled half as far (the smoothness of the drift model still spreads
+    run a's bend over the runs), and run a's posterior sd covers what is left of its error."""
+    trajs, ties = _survey()
+    worst = {}
+    for label, weighed in (("as reported", trajs), ("checked", check_reported_sd(trajs, ties, [])[0])):
+        corrected = SplineOptimizer().optimize(weighed, ties, [])
+        errors = {}
+        for r, traj in corrected.items():
+            s = _chainage(trajs[r])
+            errors[r] = np.abs(traj.xyz[:, 1] - 180000.0)[(s > TRAP[0]) & (s < TRAP[1])]
+        worst[label] = {r: float(e.max()) for r, e in errors.items()}
+        if label == "checked":
+            s = _chainage(trajs["run_a"])
+            zone = (s > TRAP[0]) & (s < TRAP[1])
+            error_a = np.abs(corrected["run_a"].xyz[zone, 1] - 180000.0)
+            assert np.all(error_a <= 3 * corrected["run_a"].sd[zone, 1])
+    assert worst["as reported"]["run_b"] > BIAS / 4  # the good runs were pulled off
+    for r in ("run_a", "run_b", "run_c"):
+        assert worst["checked"][r] < 0.6 * worst["as reported"][r], (r, worst)
