@@ -46,7 +46,7 @@ from railtraj.io.survey import (
 from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
-from railtraj.sd_check import SdCheckOptions, check_reported_sd
+from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd
 
 log = logging.getLogger(__name__)
 
@@ -180,22 +180,30 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     t0 = time.perf_counter()
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
     offsets = [r.offset for r in results]
-    # the optimizer weighs the runs by their sd: raise it first where the runs show it lies
-    weighed, sd_check = check_reported_sd(trajectories, ties, offsets, options.sd_check)
-    notes += sd_check["notes"]
-    corrected, adjustment = optimize(stages.optimizer, weighed, ties, offsets, control, notes)
+    # the optimizer weighs the runs by their sd: widen it first where the runs show it lies
+    checked = check_reported_sd(trajectories, ties, offsets, options.sd_check)
+    notes += checked.summary["notes"]
+    corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
-    adjustment["sd_check"] = sd_check
+    adjustment["sd_check"] = checked.summary
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],
-             control: ControlObservations, notes: list[str]) -> tuple[dict[str, Trajectory], dict[str, Any]]:
-    """Run the optimizer; control goes to optimizers that take it, or a warning says it was not used."""
+             control: ControlObservations, notes: list[str],
+             checked: SdCheck | None = None) -> tuple[dict[str, Trajectory], dict[str, Any]]:
+    """Run the optimizer; control goes to optimizers that take it, or a warning says it was not used.
+    Where the sd check widened a run's sd, an optimizer that takes ``widening`` gets it with the
+    reported trajectories; any other gets trajectories whose per-axis sd is widened."""
     kwargs = {}
+    if checked is not None and checked.widening:
+        if "widening" in inspect.signature(optimizer.optimize).parameters:
+            kwargs["widening"] = checked.widening
+        else:
+            trajectories = checked.trajectories
     if len(control):
         if "control" in inspect.signature(optimizer.optimize).parameters:
             kwargs["control"] = control

@@ -51,43 +51,57 @@ class _Observations:
     cov: np.ndarray    # (n, 3, 3) of the observation itself
 
 
+@dataclass
+class SdCheck:
+    """What the check found. ``widening``: per blamed run, the covariance (n_epochs, 3, 3) to add to
+    its reported sd at each epoch (zero outside the convicted spans), large in the directions the
+    runs disagree in only; ``trajectories``: every run with its per-axis sd widened by it, for
+    optimizers that take nothing but an sd per axis; ``summary``: for metrics.json."""
+
+    trajectories: dict[str, Trajectory]
+    widening: dict[str, np.ndarray]
+    summary: dict
+
+
 def check_reported_sd(trajectories: dict[str, Trajectory], ties: Sequence[Ties], offsets: Sequence[TileOffset],
-                      options: SdCheckOptions | None = None) -> tuple[dict[str, Trajectory], dict]:
-    """Trajectories whose sd is raised where the runs' disagreement convicts it, and a summary for
-    metrics.json (``runs``: per blamed run its raised spans and worst disagreement; ``notes``)."""
+                      options: SdCheckOptions | None = None) -> SdCheck:
+    """Find where the runs' ties and tile offsets convict a run's reported sd, and widen it there."""
     options = options or SdCheckOptions()
     summary = {"enabled": options.enabled, "observations": 0, "disagreeing": 0, "runs": {}, "notes": []}
     obs = _pool(trajectories, ties, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
-        return dict(trajectories), summary
+        return SdCheck(dict(trajectories), {}, summary)
     z, d = _z(trajectories, obs, options.max_weak_sd_m)
     bad = z > options.max_z
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
     runs = sorted(set(obs.run_a) | set(obs.run_b))
     at_odds = {r: _runs_at_odds(r, runs, obs, bad, options.reach_m) for r in runs}
-    out = dict(trajectories)
+    out, widening = dict(trajectories), {}
     for run in runs:
         traj = trajectories[run]
         blamed = bad & _blamed(run, runs, obs, at_odds)
         if not blamed.any() or traj.sd is None:
             continue
         as_a, as_b = blamed & (obs.run_a == run), blamed & (obs.run_b == run)
-        size = np.abs(np.concatenate([d[as_a], d[as_b]]))
-        raised = _raise(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), size, options.reach_m)
-        out[run] = traj.with_positions(traj.xyz, raised)
-        changed = np.any(raised > traj.sd, axis=1)
+        seen = np.concatenate([d[as_a], d[as_b]])
+        extra, track_sd = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen, options.reach_m)
+        widening[run] = extra
+        out[run] = traj.with_positions(traj.xyz, np.sqrt(traj.sd**2 + np.einsum("nii->ni", extra)))
+        changed = np.any(track_sd > 0, axis=1)
         spans = _spans(traj.time, changed)
-        worst = float(np.linalg.norm(size, axis=1).max())
+        worst = float(np.linalg.norm(seen, axis=1).max())
         claimed = float(np.median(np.linalg.norm(traj.sd[changed][:, :2], axis=1)))
         others = sorted(set(np.where(obs.run_a == run, obs.run_b, obs.run_a)[blamed]))
         summary["runs"][run] = {"observations": int(blamed.sum()), "spans_s": spans, "worst_disagreement_m": worst,
-                                "reported_sd_m": claimed, "against": others}
+                                "reported_sd_m": claimed, "against": others,
+                                "widened_sd_m": dict(zip(("along", "across", "up"), track_sd.max(axis=0).tolist(),
+                                                         strict=True))}
         note = (f"run {run}: its reported sd understates its error at {_fmt(spans)}: run(s) {', '.join(others)} "
                 f"disagree with it by up to {worst:.2f} m where it reports {claimed:.3f} m (horizontal sd); its sd was "
-                f"raised there, so the adjustment follows the runs that agree")
+                f"widened there, so the adjustment follows the runs that agree")
         log.warning(note)
         summary["notes"].append(note)
-    return out, summary
+    return SdCheck(out, widening, summary)
 
 
 def _pool(trajectories: dict[str, Trajectory], ties: Sequence[Ties], offsets: Sequence[TileOffset],
@@ -155,17 +169,35 @@ def _runs_at_odds(run: str, runs: list[str], obs: _Observations, bad: np.ndarray
     return count
 
 
-def _raise(traj: Trajectory, times: np.ndarray, size: np.ndarray, reach_m: float) -> np.ndarray:
-    """The run's sd, per axis at least ``size`` within ``reach_m`` metres travelled of ``times``."""
+def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The covariance (n_epochs, 3, 3) that makes the run's sd cover the disagreements ``seen`` at
+    ``times``, within ``reach_m`` metres travelled, and its sd (n_epochs, 3) along the track, across
+    it and up. Kept in the track frame so that a bias across the track does not free the run along
+    it, where its reported sd may still be right."""
     from scipy.ndimage import maximum_filter1d
 
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz, axis=0), axis=1))])
+    frame = _track_frame(traj.xyz)
     bins = np.floor(travelled).astype(np.int64)
-    floor = np.zeros((bins[-1] + 1, 3))
-    at = np.floor(np.interp(times, traj.time, travelled)).astype(np.int64)
-    np.maximum.at(floor, at, size)
-    floor = maximum_filter1d(floor, size=2 * int(np.ceil(reach_m)) + 1, axis=0, mode="constant")
-    return np.maximum(traj.sd, floor[bins])
+    at = np.clip(np.searchsorted(traj.time, times), 0, len(traj.time) - 1)
+    size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
+    track_sd = np.zeros((bins[-1] + 1, 3))
+    np.maximum.at(track_sd, bins[at], size)
+    track_sd = maximum_filter1d(track_sd, size=2 * int(np.ceil(reach_m)) + 1, axis=0, mode="constant")[bins]
+    extra = np.einsum("nki,nk,nkj->nij", frame, track_sd**2, frame)
+    return extra, track_sd
+
+
+def _track_frame(xyz: np.ndarray) -> np.ndarray:
+    """(n, 3, 3): rows along the track (horizontal), across it (left) and up, at each epoch."""
+    tangent = np.gradient(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
+    norm = np.linalg.norm(tangent, axis=1)
+    tangent = np.where(norm[:, None] > 0, tangent / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+    frame = np.zeros((len(xyz), 3, 3))
+    frame[:, 0, :2] = tangent
+    frame[:, 1, :2] = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    frame[:, 2, 2] = 1.0
+    return frame
 
 
 def _spans(time: np.ndarray, flag: np.ndarray) -> list[list[float]]:
@@ -177,4 +209,4 @@ def _fmt(spans: list[list[float]]) -> str:
     return ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in spans[:5]) + (f" and {len(spans) - 5} more" if len(spans) > 5 else "")
 
 
-__all__ = ["SdCheckOptions", "check_reported_sd"]
+__all__ = ["SdCheck", "SdCheckOptions", "check_reported_sd"]

@@ -93,15 +93,20 @@ def relative(model: CorrectionModel, run_a: str, t_a: np.ndarray, run_b: str, t_
     return np.hstack([ka, kb]), np.hstack([-wa, wb])
 
 
-def prior(model: CorrectionModel, run_id: str, sd_at_knots: np.ndarray) -> Block:
-    """``c_r(knot) = 0`` with the run's reported sd at each knot."""
+def prior(model: CorrectionModel, run_id: str, sd_at_knots: np.ndarray, extra_cov: np.ndarray | None = None) -> Block:
+    """``c_r(knot) = 0`` with the run's reported sd at each knot, plus ``extra_cov`` (n, 3, 3)
+    where the run's sd was found to understate its error (:mod:`railtraj.sd_check`)."""
     rk = model.runs[run_id]
     knots = rk.first + np.arange(rk.count)[:, None]
+    if extra_cov is None:
+        whiten = isotropic(sd_at_knots)
+    else:
+        whiten = from_covariance(np.einsum("ni,ij->nij", np.asarray(sd_at_knots, float) ** 2, np.eye(3)) + extra_cov)
     return assemble("prior", model.n_unknowns, knots, np.ones((rk.count, 1)), np.zeros((rk.count, 3)),
-                    isotropic(sd_at_knots), robust=False)
+                    whiten, robust=False)
 
 
-def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float) -> Block:
+def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float, relax: np.ndarray | None = None) -> Block:
     """Second differences of consecutive knots ``= 0``.
 
     The drift's bend along the track is modelled as white noise of density ``curvature_sd``
@@ -109,6 +114,8 @@ def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float) -> Bloc
     A constant drift rate costs nothing; a change of rate is what is penalised. Per metre, not per
     second: a tunnel's drift grows from portal to portal over the tunnel's length whatever the
     speed (a smoother ties both ends), so a fast run's drift bends no faster along the track.
+    ``relax`` (n_knots, 3, 3): where the run's error is not that drift (a GNSS bias found by
+    :mod:`railtraj.sd_check`), the bend's covariance grows by ``sd^2 relax`` at the middle knot.
     """
     rk = model.runs[run_id]
     if rk.count < 3:
@@ -118,5 +125,7 @@ def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float) -> Bloc
     h = model.knot_metres(run_id)
     sd = np.maximum(curvature_sd * (0.5 * (h[:-1] + h[1:])) ** 1.5, 1e-6)
     n = len(k)
+    whiten = isotropic(sd) if relax is None else from_covariance(
+        (sd**2)[:, None, None] * (np.eye(3) + relax[1:-1]))
     return assemble("smoothness", model.n_unknowns, np.column_stack([k, k + 1, k + 2]),
-                    np.tile([1.0, -2.0, 1.0], (n, 1)), np.zeros((n, 3)), isotropic(sd), robust=False)
+                    np.tile([1.0, -2.0, 1.0], (n, 1)), np.zeros((n, 3)), whiten, robust=False)

@@ -44,6 +44,7 @@ class SplineConfig:
     knot_spacing: float = 5.0          # distance between correction knots (knot_unit)
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
+    max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor
     tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
     offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
     max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
@@ -64,10 +65,15 @@ class SplineOptimizer:
         self.diagnostics: dict = {}
 
     def optimize(self, trajectories: dict[str, Trajectory], ties: Sequence[Ties],
-                 offsets: Sequence[TileOffset], control: ControlObservations | None = None) -> dict[str, Trajectory]:
+                 offsets: Sequence[TileOffset], control: ControlObservations | None = None,
+                 widening: dict[str, np.ndarray] | None = None) -> dict[str, Trajectory]:
+        """Corrected trajectories. ``widening``: per run, a covariance (n_epochs, 3, 3) to add to
+        its reported sd where :mod:`railtraj.sd_check` found that sd understated."""
         cfg, t0 = self.config, time.perf_counter()
         model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit)
-        blocks = [b for r in sorted(trajectories) for b in self._model_blocks(model, r, trajectories[r])]
+        widening = widening or {}
+        blocks = [b for r in sorted(trajectories)
+                  for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
         data = [self._ties(model, ties), self._offsets(model, offsets, trajectories),
                 self._control(model, control, trajectories)]
         data = [b for b in data if b is not None]
@@ -86,7 +92,8 @@ class SplineOptimizer:
             # their posterior sd overstates it where the input was already good (portals: 3.4 cm
             # for GNSS at 1.5 cm); information only ever narrows it, so never report more
             if traj.sd is not None:
-                sd = np.minimum(sd, traj.sd)
+                claimed = traj.sd if r not in widening else np.sqrt(traj.sd**2 + np.einsum("nii->ni", widening[r]))
+                sd = np.minimum(sd, claimed)
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
@@ -95,14 +102,27 @@ class SplineOptimizer:
                  time.perf_counter() - t0)
         return out
 
-    def _model_blocks(self, model: CorrectionModel, run_id: str, traj: Trajectory) -> list[obs.Block]:
+    def _model_blocks(self, model: CorrectionModel, run_id: str, traj: Trajectory,
+                      widening: np.ndarray | None = None) -> list[obs.Block]:
         cfg = self.config
         times = model.runs[run_id].knot_time
         sd = traj.sd_at(times)
         sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
         # the smoother's error is correlated: one knot of prior per correlation length, not per knot
-        sd = sd * np.sqrt(max(cfg.prior_correlation / cfg.knot_spacing, 1.0))
-        return [obs.prior(model, run_id, sd), obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
+        per_knot = max(cfg.prior_correlation / cfg.knot_spacing, 1.0)
+        if widening is None:
+            return [obs.prior(model, run_id, sd * np.sqrt(per_knot)),
+                    obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
+        extra = np.stack([np.interp(times, traj.time, widening[:, i, j]) for i in range(3) for j in range(3)],
+                         axis=1).reshape(-1, 3, 3)
+        # where a GNSS bias widened it, the run's error is not the INS drift the smoothness models:
+        # it may bend more in the widened directions, as its sd grew there but at most
+        # max_bend_widening times (a freer bend let a wrong weak pair at a portal pull 0.8 m)
+        relax = extra / np.mean(sd**2, axis=1)[:, None, None]
+        room = (cfg.max_bend_widening**2 - 1.0) / np.maximum(np.trace(relax, axis1=1, axis2=2), 1e-12)
+        relax = relax * np.minimum(1.0, room)[:, None, None]
+        return [obs.prior(model, run_id, sd * np.sqrt(per_knot), extra * per_knot),
+                obs.smoothness(model, run_id, cfg.drift_curvature_sd, relax)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]

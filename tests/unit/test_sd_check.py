@@ -57,7 +57,8 @@ def _chainage(traj: Trajectory) -> np.ndarray:
 
 def test_the_biased_run_is_blamed_and_only_where_it_is_biased():
     trajs, ties = _survey()
-    out, summary = check_reported_sd(trajs, ties, [])
+    checked = check_reported_sd(trajs, ties, [])
+    out, summary = checked.trajectories, checked.summary
     assert set(summary["runs"]) == {"run_a"}
     assert summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
     s = _chainage(trajs["run_a"])
@@ -72,13 +73,14 @@ def test_the_biased_run_is_blamed_and_only_where_it_is_biased():
 
 def test_with_two_runs_both_are_blamed():
     trajs, ties = _survey(("run_a", "run_b"))
-    _, summary = check_reported_sd(trajs, ties, [])
-    assert set(summary["runs"]) == {"run_a", "run_b"}
+    assert set(check_reported_sd(trajs, ties, []).summary["runs"]) == {"run_a", "run_b"}
 
 
 def test_runs_that_agree_within_their_sd_are_left_alone():
     trajs, ties = _survey(biased=False)
-    out, summary = check_reported_sd(trajs, ties, [])
+    checked = check_reported_sd(trajs, ties, [])
+    out, summary = checked.trajectories, checked.summary
+    assert not checked.widening
     assert summary["disagreeing"] == 0 and not summary["runs"] and not summary["notes"]
     for r in trajs:
         np.testing.assert_array_equal(out[r].sd, trajs[r].sd)
@@ -86,20 +88,23 @@ def test_runs_that_agree_within_their_sd_are_left_alone():
 
 def test_disabled_changes_nothing():
     trajs, ties = _survey()
-    out, summary = check_reported_sd(trajs, ties, [], SdCheckOptions(enabled=False))
-    assert not summary["runs"]
+    checked = check_reported_sd(trajs, ties, [], SdCheckOptions(enabled=False))
+    out, summary = checked.trajectories, checked.summary
+    assert not summary["runs"] and not checked.widening
     for r in trajs:
         np.testing.assert_array_equal(out[r].sd, trajs[r].sd)
 
 
 def test_the_adjustment_then_follows_the_runs_that_agree():
-    """Taken at its word, run a's 2 cm drags the two good runs a third of the way to its bias;
-    after the check they are pulled half as far (the smoothness of the drift model still spreads
-    run a's bend over the runs), and run a's posterior sd covers what is left of its error."""
+    """Taken at its word, run a's 2 cm drags the two good runs a third of the way to its bias
+    (10 cm of 30); after the check all three end within 2-3 cm of the truth (the smoothness of
+    the drift model still spreads some of run a's bend), and run a's posterior sd covers what is
+    left of its error."""
     trajs, ties = _survey()
     worst = {}
-    for label, weighed in (("as reported", trajs), ("checked", check_reported_sd(trajs, ties, [])[0])):
-        corrected = SplineOptimizer().optimize(weighed, ties, [])
+    widening = check_reported_sd(trajs, ties, []).widening
+    for label, kwargs in (("as reported", {}), ("checked", {"widening": widening})):
+        corrected = SplineOptimizer().optimize(trajs, ties, [], **kwargs)
         errors = {}
         for r, traj in corrected.items():
             s = _chainage(trajs[r])
@@ -112,4 +117,4 @@ def test_the_adjustment_then_follows_the_runs_that_agree():
             assert np.all(error_a <= 3 * corrected["run_a"].sd[zone, 1])
     assert worst["as reported"]["run_b"] > BIAS / 4  # the good runs were pulled off
     for r in ("run_a", "run_b", "run_c"):
-        assert worst["checked"][r] < 0.6 * worst["as reported"][r], (r, worst)
+        assert worst["checked"][r] < 0.03, (r, worst)
