@@ -201,6 +201,15 @@ def adjustment(metrics: dict[str, Any]) -> str:
                      "candidates fixed</h4><p>shift: the alias chosen, relative to the matcher's "
                      "own offset (m); margin: how much better it fits the chain than the runner-up "
                      f"(chi-square; fixed from 16)</p>{table(along)}")
+    checked = (adj.get("sd_check") or {}).get("runs") or {}
+    if checked:
+        rows = [{"run": r, "spans (s)": ", ".join(f"{a:.1f}-{b:.1f}" for a, b in v["spans_s"]),
+                 "against": ", ".join(v["against"]), "disagreement (m)": round(v["worst_disagreement_m"], 3),
+                 "reported sd (m)": round(v["reported_sd_m"], 3),
+                 "widened sd along/across/up (m)": " / ".join(f"{x:.3f}" for x in v["widened_sd_m"].values())}
+                for r, v in checked.items()]
+        parts.append("<h4>Reported sd contradicted by the other runs: widened before the adjustment</h4>"
+                     f"{table(rows)}")
     if adj.get("rejected"):
         parts.append(f"<h4>Rejected observations (first {len(adj['rejected'])})</h4>"
                      f"{table(adj['rejected'])}")

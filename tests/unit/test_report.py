@@ -82,3 +82,15 @@ def test_report_renders_without_truth_or_control(tmp_path, make_trajectory, make
     assert text.count("<img") >= 5 and "a warning" in text
     assert "no_consensus" in text and "too few keypoint pairs" in text
     assert "Against the simulator" not in text and "Control points" not in text
+
+
+def test_report_lists_runs_whose_reported_sd_was_widened():
+    from railtraj.report.html import adjustment
+    from railtraj.sd_check import check_reported_sd
+    from test_sd_check import _survey
+
+    trajs, ties = _survey()
+    summary = check_reported_sd(trajs, ties, []).summary
+    html = adjustment({"adjustment": {"sd_check": summary}})
+    assert "Reported sd contradicted" in html and "run_a" in html and "run_b, run_c" in html
+    assert adjustment({"adjustment": {"sd_check": check_reported_sd(*_survey(biased=False), []).summary}}) == ""
