@@ -85,9 +85,10 @@ def test_report_renders_without_truth_or_control(tmp_path, make_trajectory, make
 
 
 def test_report_lists_runs_whose_reported_sd_was_widened():
+    from test_sd_check import _survey
+
     from railtraj.report.html import adjustment
     from railtraj.sd_check import check_reported_sd
-    from test_sd_check import _survey
 
     trajs, ties = _survey()
     summary = check_reported_sd(trajs, ties, []).summary
