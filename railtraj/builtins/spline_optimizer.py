@@ -28,6 +28,7 @@ import numpy as np
 from railtraj.adjust import observations as obs
 from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, usable_offset
+from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
@@ -45,6 +46,7 @@ class SplineConfig:
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
     max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor
+    recentre: bool = True              # without control: runs' common correction at their sd-weighted average
     tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
     offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
     max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
@@ -84,19 +86,25 @@ class SplineOptimizer:
             return dict(trajectories)
         sol = solve(blocks + data, model.n_unknowns, confidence=cfg.robust_confidence)
         cov_blocks = sol.banded.covariance_blocks()
-        out, spans = {}, []
+        out, spans, claimed = {}, [], {}
         for r in sorted(trajectories):
             traj = trajectories[r]
             corr, sd = _evaluate(model, r, traj.time, sol, cov_blocks)
+            claimed[r] = np.full((len(traj.time), 3), cfg.default_sd_m) if traj.sd is None else traj.sd
+            if r in widening:
+                claimed[r] = np.sqrt(claimed[r] ** 2 + np.einsum("nii->ni", widening[r]))
             # the priors are weakened to count a correlated error once per prior_correlation, so
             # their posterior sd overstates it where the input was already good (portals: 3.4 cm
             # for GNSS at 1.5 cm); information only ever narrows it, so never report more
             if traj.sd is not None:
-                claimed = traj.sd if r not in widening else np.sqrt(traj.sd**2 + np.einsum("nii->ni", widening[r]))
-                sd = np.minimum(sd, claimed)
+                sd = np.minimum(sd, claimed[r])
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
+        with_control = any(b.kind == "control" and len(b) for b in data)
+        if cfg.recentre and not with_control:
+            out, shift = recentre(trajectories, out, claimed)
+            self.diagnostics["recentred_m"] = shift
         log.info("optimizer spline: %d runs, %d knots, %s; %d GNC iterations, %.2f s", len(trajectories),
                  model.n_knots, ", ".join(f"{b.kind} {len(b)}" for b in data), sol.iterations,
                  time.perf_counter() - t0)

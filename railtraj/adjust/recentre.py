@@ -1,0 +1,91 @@
+"""Put the runs' common correction where relative observations place it: their sd-weighted average.
+
+Ties and tile offsets see only differences between runs; what the runs share is seen by their
+priors alone, and the sd-weighted average of the runs at each place is the best estimate of it
+(the bound of issue #9). The spline's smoothness term pulls that common part towards the
+*unweighted* average bend of the runs, and with priors weakened for correlation it wins: on a
+2-run survey whose runs' sd differ by a fifth, the common correction missed the weighted average
+by 6 cm RMS. This step shifts every run, at each chainage, by the same vector so that the
+sd-weighted mean of the corrections there is zero. Being the same for every run at a chainage, it
+leaves all relative geometry (ties, inter-run agreement) as it was.
+
+Chainage is the distance along a reference run (the one with the longest track), onto which every
+run's epochs are projected: runs on parallel tracks share it. Where fewer than two runs pass, the
+shift is carried over from the nearest place where two do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from railtraj.data import Trajectory
+
+#: runs further than this from the reference run's track are not at its chainage
+MAX_LATERAL_M = 20.0
+#: a gap longer than this in a run's chainage breaks its coverage
+MAX_GAP_M = 5.0
+
+
+def recentre(inputs: dict[str, Trajectory], corrected: dict[str, Trajectory],
+             sd: dict[str, np.ndarray]) -> tuple[dict[str, Trajectory], float]:
+    """``corrected`` shifted so that the ``sd``-weighted mean correction is zero at each chainage,
+    and the largest shift applied (m)."""
+    if len(inputs) < 2:
+        return dict(corrected), 0.0
+    from scipy.spatial import cKDTree
+
+    ref = max(sorted(inputs), key=lambda r: _length(inputs[r].xyz))
+    ref_xy = inputs[ref].xyz[:, :2]
+    ref_ch = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ref_xy, axis=0), axis=1))])
+    tree = cKDTree(ref_xy)
+    grid = np.arange(0.0, ref_ch[-1] + 1.0, 1.0)
+    num, den, runs = np.zeros((len(grid), 3)), np.zeros((len(grid), 3)), np.zeros(len(grid))
+    chainage = {}
+    for r in sorted(inputs):
+        dist, j = tree.query(inputs[r].xyz[:, :2])
+        ch = np.where(dist <= MAX_LATERAL_M, ref_ch[j], np.nan)
+        chainage[r] = ch
+        ok = np.isfinite(ch)
+        if ok.sum() < 2:
+            continue
+        order = np.argsort(ch[ok], kind="stable")
+        x = ch[ok][order]
+        c = (corrected[r].xyz - inputs[r].xyz)[ok][order]
+        w = 1.0 / np.maximum(sd[r][ok][order], 1e-3) ** 2
+        covered = _covered(grid, x)
+        for k in range(3):
+            num[covered, k] += np.interp(grid[covered], x, w[:, k] * c[:, k])
+            den[covered, k] += np.interp(grid[covered], x, w[:, k])
+        runs += covered
+    shared = runs >= 2
+    if not shared.any():
+        return dict(corrected), 0.0
+    shift = np.column_stack([np.interp(grid, grid[shared], num[shared, k] / den[shared, k]) for k in range(3)])
+    out, largest = {}, 0.0
+    for r in sorted(corrected):
+        ch = chainage[r]
+        ok = np.isfinite(ch)
+        delta = np.zeros((len(ch), 3))
+        if ok.any():
+            delta[ok] = np.column_stack([np.interp(ch[ok], grid, shift[:, k]) for k in range(3)])
+            # epochs away from the reference track keep the shift of the nearest epoch that has one
+            idx = np.flatnonzero(ok)
+            nearest = idx[np.clip(np.searchsorted(idx, np.arange(len(ch))), 0, len(idx) - 1)]
+            delta[~ok] = delta[nearest[~ok]]
+        largest = max(largest, float(np.abs(delta).max()))
+        out[r] = corrected[r].with_positions(corrected[r].xyz - delta, corrected[r].sd)
+    return out, largest
+
+
+def _length(xyz: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1).sum())
+
+
+def _covered(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Grid points inside the run's chainage span and not inside a gap of more than MAX_GAP_M."""
+    inside = (grid >= x[0]) & (grid <= x[-1])
+    i = np.clip(np.searchsorted(x, grid), 1, len(x) - 1)
+    return inside & (x[i] - x[i - 1] <= MAX_GAP_M)
+
+
+__all__ = ["recentre"]
