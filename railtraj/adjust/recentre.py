@@ -20,8 +20,9 @@ import numpy as np
 
 from railtraj.data import Trajectory
 
-#: runs further than this from the reference run's track are not at its chainage
-MAX_LATERAL_M = 20.0
+#: runs further than this from the reference run's track are not at its chainage: a neighbouring
+#: track (3.5-4.5 m) plus the runs' misalignment, not the other bore of a twin-bore tunnel
+MAX_LATERAL_M = 6.0
 #: a gap longer than this in a run's chainage breaks its coverage
 MAX_GAP_M = 5.0
 
