@@ -181,7 +181,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
     offsets = [r.offset for r in results]
     # the optimizer weighs the runs by their sd: widen it first where the runs show it lies
-    checked = check_reported_sd(trajectories, ties, offsets, options.sd_check)
+    checked = check_reported_sd(trajectories, offsets, options.sd_check)
     notes += checked.summary["notes"]
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0

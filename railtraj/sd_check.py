@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from railtraj.adjust.offsets import WEAK_STATUSES, offset_covariance, usable_offset
-from railtraj.data import Ties, TileOffset, Trajectory
+from railtraj.data import TileOffset, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ class _Observations:
     where: np.ndarray  # (n, 2) world position, to find observations near each other
     d: np.ndarray      # (n, 3) error_a - error_b
     cov: np.ndarray    # (n, 3, 3) of the observation itself
+    pair: np.ndarray   # (n,) index of the tile pair it comes from
 
 
 @dataclass
@@ -63,16 +64,17 @@ class SdCheck:
     summary: dict
 
 
-def check_reported_sd(trajectories: dict[str, Trajectory], ties: Sequence[Ties], offsets: Sequence[TileOffset],
+def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
                       options: SdCheckOptions | None = None) -> SdCheck:
     """Find where the runs' ties and tile offsets convict a run's reported sd, and widen it there."""
     options = options or SdCheckOptions()
     summary = {"enabled": options.enabled, "observations": 0, "disagreeing": 0, "runs": {}, "notes": []}
-    obs = _pool(trajectories, ties, offsets, options) if options.enabled and len(trajectories) > 1 else None
+    obs = _pool(trajectories, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
     z, d = _z(trajectories, obs, options.max_weak_sd_m)
-    bad = z > options.max_z
+    # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
+    bad = _corroborated(obs, z > options.max_z, 2 * options.reach_m)
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
     runs = sorted(set(obs.run_a) | set(obs.run_b))
     at_odds = {r: _runs_at_odds(r, runs, obs, bad, options.reach_m) for r in runs}
@@ -104,22 +106,29 @@ def check_reported_sd(trajectories: dict[str, Trajectory], ties: Sequence[Ties],
     return SdCheck(out, widening, summary)
 
 
-def _pool(trajectories: dict[str, Trajectory], ties: Sequence[Ties], offsets: Sequence[TileOffset],
+def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
           options: SdCheckOptions) -> _Observations | None:
-    parts = [t for t in ties if len(t) and t.run_a in trajectories and t.run_b in trajectories]
-    rows = [(np.full(len(t), t.run_a, object), np.full(len(t), t.run_b, object), t.time_a, t.time_b, t.xyz_a[:, :2],
-             t.xyz_a - t.xyz_b, np.broadcast_to(options.tie_sd_m**2 * np.eye(3), (len(t), 3, 3))) for t in parts]
-    # weak pairs (degenerate, ambiguous) are left out: a wrong one near a portal would convict a good run
-    for o in (o for o in offsets if o.status not in WEAK_STATUSES and usable_offset(o, trajectories)):
-        t_a = np.array([o.info["time_a"]])
-        # like a tie's xyz_a - xyz_b (the optimizer's c_b - c_a = d): error_a - error_b
-        rows.append((np.array([o.run_a], object), np.array([o.run_b], object), t_a, np.array([o.info["time_b"]]),
-                     trajectories[o.run_a].position_at(t_a)[:, :2], np.asarray(o.d, float)[None],
-                     offset_covariance(o)[None]))
+    """The ties of ``ok`` pairs and the offsets of tie-less ``ok`` and ``coarse`` pairs, as the
+    optimizer uses them. Weak pairs (degenerate, ambiguous) are left out: a wrong one near a
+    portal would convict a good run."""
+    rows = []
+    for k, o in enumerate(offsets):
+        if o.run_a not in trajectories or o.run_b not in trajectories:
+            continue
+        t = o.ties
+        if o.ok and t is not None and len(t):
+            rows.append((np.full(len(t), o.run_a, object), np.full(len(t), o.run_b, object), t.time_a, t.time_b,
+                         t.xyz_a[:, :2], t.xyz_a - t.xyz_b, np.broadcast_to(options.tie_sd_m**2 * np.eye(3), (len(t), 3, 3)),
+                         np.full(len(t), k)))
+        elif o.status not in WEAK_STATUSES and usable_offset(o, trajectories):
+            t_a = np.array([o.info["time_a"]])
+            # like a tie's xyz_a - xyz_b (the optimizer's c_b - c_a = d): error_a - error_b
+            rows.append((np.array([o.run_a], object), np.array([o.run_b], object), t_a, np.array([o.info["time_b"]]),
+                         trajectories[o.run_a].position_at(t_a)[:, :2], np.asarray(o.d, float)[None],
+                         offset_covariance(o)[None], np.array([k])))
     if not rows:
         return None
-    cols = [np.concatenate([r[k] for r in rows]) for k in range(7)]
-    return _Observations(*cols)
+    return _Observations(*(np.concatenate([r[i] for r in rows]) for i in range(8)))
 
 
 def _z(trajectories: dict[str, Trajectory], obs: _Observations, max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +164,25 @@ def _blamed(run: str, runs: list[str], obs: _Observations, at_odds: dict[str, np
     for r in runs:
         theirs[other == r] = at_odds[r][other == r]
     return involved & (at_odds[run] >= theirs)
+
+
+def _corroborated(obs: _Observations, bad: np.ndarray, reach_m: float) -> np.ndarray:
+    """Disagreements that another tile pair (of the same runs or of others) shows within
+    ``reach_m`` too: one wrong tile pair (an alias, a coarse fit) convicts nobody."""
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(bad)
+    if len(idx) < 2:
+        return np.zeros_like(bad)
+    tree = cKDTree(obs.where[idx])
+    near = tree.sparse_distance_matrix(tree, reach_m, output_type="ndarray")
+    rows, cols = near["i"], near["j"]
+    other_pair = obs.pair[idx][cols] != obs.pair[idx][rows]
+    keep = np.zeros(len(idx), bool)
+    keep[rows[other_pair]] = True
+    out = np.zeros_like(bad)
+    out[idx[keep]] = True
+    return out
 
 
 def _runs_at_odds(run: str, runs: list[str], obs: _Observations, bad: np.ndarray, reach_m: float) -> np.ndarray:

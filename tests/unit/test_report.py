@@ -90,8 +90,9 @@ def test_report_lists_runs_whose_reported_sd_was_widened():
     from railtraj.report.html import adjustment
     from railtraj.sd_check import check_reported_sd
 
-    trajs, ties = _survey()
-    summary = check_reported_sd(trajs, ties, []).summary
+    trajs, offsets, _ = _survey()
+    summary = check_reported_sd(trajs, offsets).summary
     html = adjustment({"adjustment": {"sd_check": summary}})
     assert "Reported sd contradicted" in html and "run_a" in html and "run_b, run_c" in html
-    assert adjustment({"adjustment": {"sd_check": check_reported_sd(*_survey(biased=False), []).summary}}) == ""
+    unbiased = _survey(biased=False)
+    assert adjustment({"adjustment": {"sd_check": check_reported_sd(*unbiased[:2]).summary}}) == ""
