@@ -11,7 +11,9 @@ the default pipeline and prints one table row:
   errors (the best relative observations allow without control: ``bound``);
 * the worst ``ok`` tile-pair offset, the number of ``coarse`` pairs and their worst, the worst tie,
   against the truth, and ties over 5 cm;
-* the share of tile pairs whose along-track offset is used (``ok`` or resolved).
+* the share of tile pairs whose along-track offset is used (``ok`` or resolved);
+* honesty: the share of epochs whose corrected horizontal error exceeds 3 times the reported
+  posterior horizontal sd, and the largest such ratio (a wrong answer reported as reliable).
 """
 
 from __future__ import annotations
@@ -108,7 +110,21 @@ def score(survey_dir: Path, result) -> dict:
         "worst_coarse": float(max((np.linalg.norm(e) for e in coarse.values()), default=0.0)), "coarse": len(coarse),
         "worst_tie": float(ties.max()) if len(ties) else 0.0, "ties_over_5cm": int((ties > 0.05).sum()),
         "ties": len(ties), "used_share": used / max(len(result.offsets), 1),
+        **honesty(truth.trajectories, result.corrected),
     }
+
+
+def honesty(truth, corrected) -> dict:
+    """How often, and by how much, the corrected trajectories' error exceeds their posterior sd
+    (horizontal): ``beyond_3sd`` (share of epochs over 3 sd) and ``worst_z``."""
+    ratios = []
+    for r, traj in corrected.items():
+        if traj.sd is None:
+            continue
+        err, ok = position_error(truth[r], traj)
+        ratios.append(np.linalg.norm(err[:, :2], axis=1) / np.maximum(np.linalg.norm(traj.sd[ok][:, :2], axis=1), 1e-9))
+    z = np.concatenate(ratios) if ratios else np.zeros(0)
+    return {"beyond_3sd": float(np.mean(z > 3)) if len(z) else 0.0, "worst_z": float(z.max()) if len(z) else 0.0}
 
 
 def print_pairs(survey_dir: Path, result) -> None:
@@ -135,8 +151,8 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS before -> after | "
           "abs h / v RMS before -> after | gap to bound | worst ok offset | coarse: n, worst | worst tie | ties > 5 cm | "
-          "along used | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "along used | beyond 3 sd, worst | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for scenario in args.scenarios:
         for seed in args.seeds:
             survey = survey_for(scenario, seed, args.size, tuple(args.vary))
@@ -154,7 +170,8 @@ def main() -> None:
                   f"{s['hmax_after']:.3f} | {s['v_before']:.3f} -> {s['v_after']:.3f} | {s['abs_h_before']:.2f} / "
                   f"{s['abs_v_before']:.2f} -> {s['abs_h_after']:.3f} / {s['abs_v_after']:.3f} | {s['bound_gap']:.3f} | "
                   f"{s['worst_ok']:.3f} | {s['coarse']}, {s['worst_coarse']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
-                  f"{s['used_share']:.0%} | {time.perf_counter() - t0:.0f} |", flush=True)
+                  f"{s['used_share']:.0%} | {s['beyond_3sd']:.1%}, {s['worst_z']:.1f} | {time.perf_counter() - t0:.0f} |",
+                  flush=True)
 
 
 if __name__ == "__main__":
