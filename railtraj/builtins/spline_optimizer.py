@@ -54,6 +54,8 @@ class SplineConfig:
     robust_confidence: float = 0.999   # chi-square level beyond which an observation is rejected
     default_sd_m: float = 1.0          # prior sd where the trajectory reports none
     prior_correlation: float = 500.0   # (knot_unit) length over which the reported sd is one independent error
+    gnss_sd_m: float = 0.03            # reported horizontal sd up to which a position is GNSS-controlled: one error per knot
+    drift_sd_m: float = 0.10           # ... from which it is the smoother's bridge: one error per prior_correlation
     min_sd_m: float = 0.005            # floor on the reported sd
     max_gap: float = 10.0              # knots without any observation before a stretch is reported
     weak_span_sd_m: float = 0.05       # ... when the trajectory's own sd there exceeds this
@@ -116,10 +118,10 @@ class SplineOptimizer:
         times = model.runs[run_id].knot_time
         sd = traj.sd_at(times)
         sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
-        # the smoother's error is correlated: one knot of prior per correlation length, not per knot
-        per_knot = max(cfg.prior_correlation / cfg.knot_spacing, 1.0)
+        correlated = max(cfg.prior_correlation / cfg.knot_spacing, 1.0)
+        per_knot = correlated ** _drift_share(sd, cfg.gnss_sd_m, cfg.drift_sd_m)
         if widening is None:
-            return [obs.prior(model, run_id, sd * np.sqrt(per_knot)),
+            return [obs.prior(model, run_id, sd * np.sqrt(per_knot)[:, None]),
                     obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
         extra = np.stack([np.interp(times, traj.time, widening[:, i, j]) for i in range(3) for j in range(3)],
                          axis=1).reshape(-1, 3, 3)
@@ -129,7 +131,8 @@ class SplineOptimizer:
         relax = extra / np.mean(sd**2, axis=1)[:, None, None]
         room = (cfg.max_bend_widening**2 - 1.0) / np.maximum(np.trace(relax, axis1=1, axis2=2), 1e-12)
         relax = relax * np.minimum(1.0, room)[:, None, None]
-        return [obs.prior(model, run_id, sd * np.sqrt(per_knot), extra * per_knot),
+        # a GNSS bias found by the sd check spans tens of metres: counted once per correlation length
+        return [obs.prior(model, run_id, sd * np.sqrt(per_knot)[:, None], extra * correlated),
                 obs.smoothness(model, run_id, cfg.drift_curvature_sd, relax)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
@@ -225,6 +228,22 @@ class SplineOptimizer:
                 "observations": counts, "rejected": rejected, "gnc_iterations": sol.iterations,
                 "bandwidth": sol.banded.bandwidth, "under_constrained": spans, "seconds": round(seconds, 3),
                 "notes": []}
+
+
+def _drift_share(sd: np.ndarray, gnss_sd_m: float, drift_sd_m: float) -> np.ndarray:
+    """Per knot, 0 where the reported horizontal sd is GNSS-like (<= ``gnss_sd_m``), 1 where it is
+    the smoother's drift (>= ``drift_sd_m``), log-linear between.
+
+    A smoother's error in a tunnel is one smooth bridge from portal to portal, so its prior counts
+    once per ``prior_correlation``. Where GNSS is good its error is GNSS noise that decorrelates
+    within metres: weakened like the bridge, the priors at a portal let a wrong weak tile pair
+    there pull two runs 9 cm apart where their input agreed to 1 cm (simulated portal, survey
+    start).
+    """
+    h = np.sqrt(np.mean(sd[:, :2] ** 2, axis=1))
+    if not drift_sd_m > gnss_sd_m:
+        return (h > gnss_sd_m).astype(float)
+    return np.clip(np.log(np.maximum(h, 1e-9) / gnss_sd_m) / np.log(drift_sd_m / gnss_sd_m), 0.0, 1.0)
 
 
 def _evaluate(model: CorrectionModel, run_id: str, times: np.ndarray, sol, cov_blocks) -> tuple[np.ndarray, np.ndarray]:

@@ -104,28 +104,25 @@ def test_disabled_changes_nothing():
 
 
 def test_the_adjustment_then_follows_the_runs_that_agree():
-    """Taken at its word, run a's 2 cm drags the two good runs a third of the way to its bias
-    (10 cm of 30); after the check all three end within 2-3 cm of the truth (the smoothness of
-    the drift model still spreads some of run a's bend), and run a's posterior sd covers what is
-    left of its error."""
+    """Taken at its word (2 cm where GNSS is good), run a keeps its 30 cm bias: the ties that
+    show it are rejected as outliers and the result claims 2 cm. After the check all three runs
+    end within 2 cm of the truth, and run a's posterior sd covers what is left of its error."""
     trajs, offsets, ties = _survey()
-    worst = {}
     widening = check_reported_sd(trajs, offsets).widening
+    worst = {}
     for label, kwargs in (("as reported", {}), ("checked", {"widening": widening})):
         corrected = SplineOptimizer().optimize(trajs, ties, [], **kwargs)
-        errors = {}
+        worst[label] = {}
         for r, traj in corrected.items():
             s = _chainage(trajs[r])
-            errors[r] = np.abs(traj.xyz[:, 1] - 180000.0)[(s > TRAP[0]) & (s < TRAP[1])]
-        worst[label] = {r: float(e.max()) for r, e in errors.items()}
-        if label == "checked":
-            s = _chainage(trajs["run_a"])
             zone = (s > TRAP[0]) & (s < TRAP[1])
-            error_a = np.abs(corrected["run_a"].xyz[zone, 1] - 180000.0)
-            assert np.all(error_a <= 3 * corrected["run_a"].sd[zone, 1])
-    assert worst["as reported"]["run_b"] > BIAS / 4  # the good runs were pulled off
+            error = np.abs(traj.xyz[zone, 1] - 180000.0)
+            worst[label][r] = float(error.max())
+            if label == "checked":
+                assert np.all(error <= 3 * traj.sd[zone, 1]), r
+    assert worst["as reported"]["run_a"] > 0.8 * BIAS
     for r in ("run_a", "run_b", "run_c"):
-        assert worst["checked"][r] < 0.03, (r, worst)
+        assert worst["checked"][r] < 0.02, (r, worst)
 
 
 def test_one_wrong_tile_pair_convicts_nobody():

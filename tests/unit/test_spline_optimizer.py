@@ -214,3 +214,22 @@ def test_no_observations_leaves_trajectories_unchanged_with_a_note():
     a, b = _runs(10.0, 10.0)
     out, diag = _optimize(a, b, [])
     assert out["run_a"] is a.traj and diag["notes"]
+
+
+def test_a_wrong_weak_pair_where_gnss_is_good_does_not_pull_the_runs_apart():
+    """At a portal both runs report 1.5 cm and agree. A wrong degenerate pair there says they are
+    0.15 m apart across the track: weakened like the tunnel's drift (one error per 500 m), the
+    GNSS priors let it pull the runs apart; counted per knot (``gnss_sd_m``) they hold."""
+    a, b = _runs(10.0, 13.0)
+    s_wrong = TUNNEL[0] - 30.0
+    wrong = TileOffset("run_a", "run_b", "x", "y", d=np.array([0.0, 0.15, 0.0]),
+                       cov=np.diag([50.0**2, 0.02**2, 0.02**2]), status="degenerate",
+                       info={"time_a": float(a.time_at(np.array([s_wrong]))[0]),
+                             "time_b": float(b.time_at(np.array([s_wrong]))[0]), "piecewise": {"axis": [1.0, 0.0, 0.0]}})
+    ties = _pair_ties(a, b, np.random.default_rng(5))
+    s = np.linspace(s_wrong - 10, s_wrong + 10, 50)
+    apart = {}
+    for label, options in (("as drift", {"gnss_sd_m": 0.0, "drift_sd_m": 0.0}), ("per knot", {})):
+        out, _ = _optimize(a, b, ties, [wrong], **options)
+        apart[label] = float(np.abs(_inter_run_error(out, a, b, s)[:, 1]).max())
+    assert apart["per knot"] < 0.01 and apart["as drift"] > 2 * apart["per knot"], apart
