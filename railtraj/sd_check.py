@@ -1,18 +1,20 @@
-"""Checks each run's reported sd against what the other runs show, and raises it where it lies.
+"""Checks each run's reported sd against what the other runs show, and widens it where it lies.
 
 The adjustment weighs the runs by their reported sd. Where GNSS is good an SBET claims 1-3 cm,
 and near a portal multipath can bias it by decimetres while it still claims 2 cm (the thesis'
 failure near a portal). Taken at its word, such a run pulls the runs that agree with each other
-towards its bias: on a simulated portal with one run 0.37 m off at 2 cm reported sd, all three
-corrected runs ended 13 cm off there.
+towards its bias, or keeps its own bias while the ties that show it are rejected as outliers,
+and the result claims 2 cm either way.
 
 The runs' ties measure ``error_a - error_b`` directly. Under the reported sd that difference has
 covariance ``S_a + S_b + C_obs``; a tie or tile offset beyond ``max_z`` standard deviations says
-one of the two sds is wrong. The run to blame is the one at odds with most of the runs it meets
-near there: with three or more runs the run whose GNSS is biased disagrees with all others while
-the others agree; with two runs both are blamed. A blamed run's sd is raised, per axis, to the
-disagreement it shows, over ``reach_m`` metres around it, so the adjustment follows the runs that
-agree and the corrected run's posterior sd says how little its own GNSS was worth there.
+one of the two sds is wrong, when another tile pair nearby says so too (one aliased pair convicts
+nobody). The run to blame is the one at odds with most of the runs it meets near there: with
+three or more runs the run whose GNSS is biased disagrees with all others while the others agree;
+with two runs both are blamed. A blamed run's covariance is widened by the disagreement it shows,
+in the track frame (along, across, up), over ``reach_m`` metres around it, so the adjustment
+follows the runs that agree and the corrected run's posterior sd says how little its own GNSS
+was worth there.
 """
 
 from __future__ import annotations
