@@ -86,6 +86,10 @@ class Trajectory:
         """Body -> NED rotation per epoch."""
         return attitude_to_rotation(self.rpy)
 
+    def travelled(self) -> np.ndarray:
+        """Distance travelled (m, 3-D) from the first epoch to each epoch."""
+        return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(self.xyz, axis=0), axis=1))])
+
     def position_at(self, times: np.ndarray) -> np.ndarray:
         """Position (linear) at arbitrary ``times`` within the span: no attitude, so no rotation
         of every epoch (25 ms on a 10 min run) is built."""

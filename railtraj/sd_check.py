@@ -79,7 +79,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     bad = _corroborated(obs, z > options.max_z, 2 * options.reach_m)
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
     runs = sorted(set(obs.run_a) | set(obs.run_b))
-    at_odds = {r: _runs_at_odds(r, runs, obs, bad, options.reach_m) for r in runs}
+    at_odds = _runs_at_odds(runs, obs, bad, options.reach_m)
     out, widening = dict(trajectories), {}
     for run in runs:
         traj = trajectories[run]
@@ -90,7 +90,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         seen = np.concatenate([d[as_a], d[as_b]])
         extra, track_sd = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen, options.reach_m)
         widening[run] = extra
-        out[run] = traj.with_positions(traj.xyz, np.sqrt(traj.sd**2 + np.einsum("nii->ni", extra)))
+        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, extra))
         changed = np.any(track_sd > 0, axis=1)
         spans = _spans(traj.time, changed)
         worst = float(np.linalg.norm(seen, axis=1).max())
@@ -106,6 +106,11 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         log.warning(note)
         summary["notes"].append(note)
     return SdCheck(out, widening, summary)
+
+
+def widened_sd(sd: np.ndarray, widening: np.ndarray) -> np.ndarray:
+    """Per-axis sd (n, 3) of a run whose covariance was widened by ``widening`` (n, 3, 3)."""
+    return np.sqrt(sd**2 + np.einsum("nii->ni", widening))
 
 
 def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
@@ -187,15 +192,18 @@ def _corroborated(obs: _Observations, bad: np.ndarray, reach_m: float) -> np.nda
     return out
 
 
-def _runs_at_odds(run: str, runs: list[str], obs: _Observations, bad: np.ndarray, reach_m: float) -> np.ndarray:
-    """At each observation's place: how many other runs ``run`` disagrees with within ``reach_m``."""
+def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m: float) -> dict[str, np.ndarray]:
+    """Per run, at each observation's place: how many other runs it disagrees with within ``reach_m``."""
     from scipy.spatial import cKDTree
 
-    count = np.zeros(len(obs.d))
-    for q in runs:
-        pair = bad & (((obs.run_a == run) & (obs.run_b == q)) | ((obs.run_a == q) & (obs.run_b == run)))
-        if q != run and pair.any():
-            count += cKDTree(obs.where[pair]).query_ball_point(obs.where, reach_m, return_length=True) > 0
+    count = {r: np.zeros(len(obs.d)) for r in runs}
+    for i, r in enumerate(runs):
+        for q in runs[i + 1:]:
+            pair = bad & (((obs.run_a == r) & (obs.run_b == q)) | ((obs.run_a == q) & (obs.run_b == r)))
+            if pair.any():
+                near = cKDTree(obs.where[pair]).query_ball_point(obs.where, reach_m, return_length=True) > 0
+                count[r] += near
+                count[q] += near
     return count
 
 
@@ -206,9 +214,8 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     it, where its reported sd may still be right."""
     from scipy.ndimage import maximum_filter1d
 
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz, axis=0), axis=1))])
     frame = _track_frame(traj.xyz)
-    bins = np.floor(travelled).astype(np.int64)
+    bins = np.floor(traj.travelled()).astype(np.int64)
     at = np.clip(np.searchsorted(traj.time, times), 0, len(traj.time) - 1)
     size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
     track_sd = np.zeros((bins[-1] + 1, 3))
@@ -239,4 +246,4 @@ def _fmt(spans: list[list[float]]) -> str:
     return ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in spans[:5]) + (f" and {len(spans) - 5} more" if len(spans) > 5 else "")
 
 
-__all__ = ["SdCheck", "SdCheckOptions", "check_reported_sd"]
+__all__ = ["SdCheck", "SdCheckOptions", "check_reported_sd", "widened_sd"]

@@ -61,7 +61,7 @@ class CorrectionModel:
         first = 0
         for run_id in sorted(trajectories):
             traj = trajectories[run_id]
-            distance = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz, axis=0), axis=1))])
+            distance = traj.travelled()
             param = distance if unit == "m" else traj.time - traj.time[0]
             n = max(2, int(np.ceil(param[-1] / self.spacing)) + 1)
             knot_param = self.spacing * np.arange(n)

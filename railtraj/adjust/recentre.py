@@ -9,8 +9,9 @@ by 6 cm RMS. This step shifts every run, at each chainage, by the same vector so
 sd-weighted mean of the corrections there is zero. Being the same for every run at a chainage, it
 leaves all relative geometry (ties, inter-run agreement) as it was.
 
-Chainage is the distance along a reference run (the one with the longest track), onto which every
-run's epochs are projected: runs on parallel tracks share it. Where fewer than two runs pass, the
+Chainage (:mod:`railtraj.chainage`, as in the report) is the distance along a reference run (the
+one with the longest track), onto which every run's epochs are projected: runs on parallel tracks
+share it. Where fewer than two runs pass, the
 shift is carried over from the nearest place where two do.
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from railtraj.chainage import Chainage
 from railtraj.data import Trajectory
 
 #: runs further than this from the reference run's track are not at its chainage: a neighbouring
@@ -33,19 +35,12 @@ def recentre(inputs: dict[str, Trajectory], corrected: dict[str, Trajectory],
     and the largest shift applied (m)."""
     if len(inputs) < 2:
         return dict(corrected), 0.0
-    from scipy.spatial import cKDTree
-
-    ref = max(sorted(inputs), key=lambda r: _length(inputs[r].xyz))
-    ref_xy = inputs[ref].xyz[:, :2]
-    ref_ch = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ref_xy, axis=0), axis=1))])
-    tree = cKDTree(ref_xy)
-    grid = np.arange(0.0, ref_ch[-1] + 1.0, 1.0)
+    along = Chainage(inputs[max(sorted(inputs), key=lambda r: _length(inputs[r].xyz))])
+    grid = np.arange(0.0, along.length + 1.0, 1.0)
     num, den, runs = np.zeros((len(grid), 3)), np.zeros((len(grid), 3)), np.zeros(len(grid))
     chainage = {}
     for r in sorted(inputs):
-        dist, j = tree.query(inputs[r].xyz[:, :2])
-        ch = np.where(dist <= MAX_LATERAL_M, ref_ch[j], np.nan)
-        chainage[r] = ch
+        ch = chainage[r] = along.of_trajectory(inputs[r], MAX_LATERAL_M)
         ok = np.isfinite(ch)
         if ok.sum() < 2:
             continue

@@ -32,6 +32,7 @@ from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
+from railtraj.sd_check import widened_sd
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ class SplineOptimizer:
             corr, sd = _evaluate(model, r, traj.time, sol, cov_blocks)
             claimed[r] = np.full((len(traj.time), 3), cfg.default_sd_m) if traj.sd is None else traj.sd
             if r in widening:
-                claimed[r] = np.sqrt(claimed[r] ** 2 + np.einsum("nii->ni", widening[r]))
+                claimed[r] = widened_sd(claimed[r], widening[r])
             # the priors are weakened to count a correlated error once per prior_correlation, so
             # their posterior sd overstates it where the input was already good (portals: 3.4 cm
             # for GNSS at 1.5 cm); information only ever narrows it, so never report more
