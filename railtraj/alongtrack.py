@@ -25,7 +25,8 @@ anchor the next round.
 
 What cannot be fixed stays ``ambiguous`` and is used across the track and in height only. This
 applies to ``ok`` pairs too: a pair the matcher found sure but the chain cannot confirm is
-demoted, never kept on a possible alias.
+demoted, never kept on a possible alias. A pair the matcher checked with too few votes
+(``few_votes``) is stricter still: used only once the chain fixes it, else ``no_consensus``.
 """
 
 from __future__ import annotations
@@ -101,6 +102,10 @@ class Pair:
     prior_var: float  # variance of the along offset from the trajectories' sd
     u0: float = 0.0  # along-track offset of the matcher's own choice (shift 0)
     along: float = 1.0  # d u / d shift: the pair's axis projected on run b's direction of travel
+    # False for a pair with too few votes whose profile's peaks crowd (see _periodic): fitted from
+    # wherever its handful of votes pointed, its curve's slope counts only once its alias is
+    # fixed (one such pair's -1 mm/m among its neighbours' +2..+11 bent the chain by 0.2 m)
+    rate_trusted: bool = True
 
 
 def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Trajectory],
@@ -108,7 +113,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     """Offsets with each candidate pair resolved, moved to another alias or demoted, and one
     report row per candidate pair."""
     if not options.enabled:
-        return list(offsets), []
+        return [_unless_few_votes(o) for o in offsets], []
     out, report = list(offsets), []
     chains: dict[tuple[str, str], list[Pair]] = {}
     travelled = {r: _travelled(t) for r, t in trajectories.items()}
@@ -148,7 +153,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                        "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
                        "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
                        "candidate_shifts_m": []})
-    out = [_within_reach(o, options) for o in out]
+    out = [_within_reach(_unless_few_votes(o), options) for o in out]
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
@@ -239,7 +244,15 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
-                max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction))
+                max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
+                rate_trusted="few_votes" not in o.info or _periodic(shift, options.min_period))
+
+
+def _periodic(shift: np.ndarray, min_period: float) -> bool:
+    """Whether a profile's peaks (and the matcher's own fit, shift 0) are all at least
+    ``min_period`` apart, as aliases are. Peaks 0.13-0.17 m apart are the profile's noise: the
+    pair's windows found nothing repeatable there either."""
+    return bool((np.diff(np.unique(np.append(shift, 0.0))) >= min_period).all())
 
 
 def _rate(o: TileOffset, gradient: np.ndarray, direction: np.ndarray, sign: float, traj_b: Trajectory) -> float:
@@ -371,10 +384,14 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
         return chain
     s = np.array([p.s for p in chain])
     rate = np.array([p.rate for p in chain])
+    trusted = np.array([p.rate_trusted for p in chain])
     scale = 4.685 * options.rate_sd  # Tukey's biweight at 95 % efficiency
     out = []
     for p in chain:  # a few dozen pairs per run pair: small loops
-        near = np.flatnonzero(np.abs(s - p.s) <= options.rate_radius)
+        if not p.rate_trusted:  # neither corrected nor used to correct
+            out.append(p)
+            continue
+        near = np.flatnonzero((np.abs(s - p.s) <= options.rate_radius) & trusted)
         x = np.column_stack([np.ones(len(near)), s[near] - p.s])
         coef = np.array([np.median(rate[near]), 0.0])  # start from the median: robust to a stray half
         for _ in range(10):  # iteratively reweighted least squares
@@ -426,7 +443,8 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
         # the smoother's error is one error over prior_correlation metres: count it once there
         gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)
         inflate = max(1.0, options.prior_correlation / max(gap, 1.0)) if np.isfinite(gap) else 1.0
-        for row, z, r in ((1, p.rate, options.rate_sd**2), (0, 0.0, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
+        rate = p.rate if p.rate_trusted or np.isfinite(fixed[i]) else np.nan
+        for row, z, r in ((1, rate, options.rate_sd**2), (0, 0.0, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
             if not np.isfinite(z):
                 continue
             s = P[row, row] + r
@@ -461,6 +479,17 @@ def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTr
     if o.status == "degenerate":
         extra += max(options.max_pair_sd**2 - sd**2, 0.0)
     return extra
+
+
+def _unless_few_votes(o: TileOffset) -> TileOffset:
+    """A pair with too few votes (``few_votes``: the matcher checked it densely all the same)
+    unless the chain fixed its alias: then it is ``ok`` or ``coarse``; else ``no_consensus``, as
+    before it was checked. Its across and up are left unused too: fitted from a peak of 2-4
+    votes, one such pair at a survey's end pulled two runs 8.5 cm apart, 4 sd."""
+    if "few_votes" not in o.info or o.status in ("ok", COARSE):
+        return o
+    info = dict(o.info, demoted="too few votes, and the along-track chain could not fix its alias")
+    return replace(o, status="no_consensus", cov=np.full((3, 3), np.nan), ties=Ties.empty(o.run_a, o.run_b), info=info)
 
 
 def _within_reach(o: TileOffset, options: AlongTrackOptions) -> TileOffset:

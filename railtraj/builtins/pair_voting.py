@@ -35,7 +35,8 @@ class VotingOptions:
     max_misalignment: float = 3.0  # m; search window around the initial offset (or zero)
     inlier_radius: float = 0.1  # m; a keypoint pair agrees with a translation this closely
     min_keypoints: int = 10  # per tile; fewer: few_keypoints
-    min_inliers: int = 5  # agreeing pairs the best translation needs; fewer: no_consensus
+    min_inliers: int = 5  # agreeing pairs the best translation needs to be ok
+    min_check_votes: int = 2  # fewer than min_inliers but this many: checked densely, at best ambiguous
     n_peaks: int = 5  # distinct vote peaks checked on the dense clouds
     check_points: int = 20_000  # raw points of tile b for that check
     min_fitness: float = 0.5  # share of points within 5 cm at the best peak; below: no_overlap
@@ -62,6 +63,7 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
     if o.tie_positions not in ("offset", "keypoints"):
         raise ConfigError(f"tie_positions={o.tie_positions!r}: choose offset or keypoints")
     settings = VoteSettings(inlier_radius=o.inlier_radius, n_peaks=o.n_peaks, min_inliers=o.min_inliers,
+                            min_check_votes=o.min_check_votes,
                             check_points=o.check_points, min_fitness=o.min_fitness,
                             ambiguity_ratio=o.ambiguity_ratio, max_sd=o.max_sd, target_voxel=o.target_voxel,
                             tie_positions=o.tie_positions, window_length=o.window_length,

@@ -43,7 +43,8 @@ Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], Til
 class VoteSettings:
     inlier_radius: float = 0.1  # m; a pair agrees with a translation this closely
     n_peaks: int = 5  # distinct vote peaks checked densely
-    min_inliers: int = 5  # votes the best peak needs
+    min_inliers: int = 5  # votes the best peak needs to be ok
+    min_check_votes: int = 2  # fewer than min_inliers but this many: checked densely, at best ambiguous
     check_points: int = 20_000  # raw points of tile b for the dense check
     profile_points: int = 2_000  # of those, slid along the weak axis to find aliases
     fitness_radius: float = 0.05
@@ -68,13 +69,20 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     peaks = find_peaks(votes, s.inlier_radius, s.n_peaks)
     info.update(pairs=len(votes), background_votes=votes.background(s.inlier_radius))
     info["timings"]["peaks"] = time.perf_counter() - t0
-    if not peaks or peaks[0].count < s.min_inliers:
+    # a sparse detector (20-70 keypoints a tile) leaves a fifth of the pairs below min_inliers,
+    # though their dense clouds fit: those are checked too, but their alias rests on the dense
+    # profile and the chain along the track, never on their votes (at best ambiguous)
+    few_votes = bool(peaks) and s.min_check_votes <= peaks[0].count < s.min_inliers and refiner is not None \
+        and s.window_length > 0
+    if not peaks or (peaks[0].count < s.min_inliers and not few_votes):
         info["vote_peaks"] = [[*p.d.tolist(), float(p.count), np.nan] for p in peaks]
         return failed(tile_a, tile_b, "no_consensus", info, peaks[0].d if peaks else None,
                       inliers=peaks[0].count if peaks else 0)
     info["peak_ratio"] = peaks[1].count / peaks[0].count if len(peaks) > 1 else 0.0
     info["vote_slices"] = slices(votes, peaks[0].d, s.inlier_radius)
-    candidates = [p for p in peaks if p.count >= s.min_inliers]
+    candidates = [p for p in peaks if p.count >= (s.min_check_votes if few_votes else s.min_inliers)]
+    if few_votes:
+        info["few_votes"] = int(peaks[0].count)
 
     t1 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
@@ -89,8 +97,9 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     info.update(vote_peaks=peak_table(checked), chosen_peak=best, rival_misfit_ratio=rival,
                 check_fitness=chosen.fit.fitness)
     info["timings"]["dense_check"] = time.perf_counter() - t1
-    if chosen.fit.fitness < s.min_fitness:
-        return failed(tile_a, tile_b, "no_overlap", info, chosen.fit.d, inliers=chosen.peak.count)
+    if chosen.fit.fitness < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
+        return failed(tile_a, tile_b, "no_consensus" if few_votes else "no_overlap", info, chosen.fit.d,
+                      inliers=chosen.peak.count)
     if refiner is not None and s.window_length > 0:
         return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
     if rival >= s.ambiguity_ratio:
@@ -112,7 +121,8 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction or fewer than
     ``min_windows`` windows carry it (a short overlap: with 2-3 windows the curvature of the
     drift is not seen, and errors reached 13 mm on the thesis tunnel), else ``ok`` with ties
-    whose offsets follow the curve."""
+    whose offsets follow the curve. A pair with fewer votes than ``min_inliers`` is never
+    ``ok`` here: its alias is left to the chain along the track."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
     tree = reference_tree(tile_a.xyz)  # run a's raw points, for the along-track profiles of every fit
@@ -146,10 +156,11 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ia, ib = consensus(votes, fit.at(kp_b.xyz[votes.ib]), s.inlier_radius)
     keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve was fitted
     ia, ib = ia[keep], ib[keep]
-    if rival >= s.ambiguity_ratio:
+    degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
+    if rival >= s.ambiguity_ratio or ("few_votes" in info and not degenerate):
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
-    if not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows):
+    if degenerate:
         return failed(tile_a, tile_b, "degenerate", info, fit.d_ref, fit.cov, inliers=len(ia))
     if len(ia) >= MIN_KEYPOINT_TIES:
         ties = make_ties(tile_a, tile_b, kp_a, kp_b, ia, ib, fit.at(kp_b.xyz[ib]), s.tie_positions)

@@ -259,3 +259,54 @@ def test_a_profile_peak_less_than_a_period_from_the_windows_fit_is_no_alias_to_m
     assert out[5].status == "ambiguous" and row["verdict"] == "ambiguous"
     assert abs(row["shift_m"] + 0.16) < 0.03  # the peak is reported as the pair's candidate
     assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < 0.01  # a real alias is
+
+
+def _few_votes(o: TileOffset, crowded: bool = False, rate: float | None = None) -> TileOffset:
+    """``o`` as the matcher returns a pair with too few votes: ambiguous, with ``few_votes``;
+    ``crowded``: its profile's peaks 0.15 m apart (noise, no alias); ``rate``: its curve's slope."""
+    info = dict(o.info, few_votes=3)
+    if crowded:
+        prof = info["alias_profile"]
+        ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+        info["alias_profile"] = dict(prof, fitness=(0.8 + 0.05 * np.cos(2 * np.pi * ts / 0.15)).tolist())
+    if rate is not None:
+        info["piecewise"] = dict(info["piecewise"], gradient=[rate, 0.0, 0.0])
+    return replace(o, status="ambiguous", cov=np.diag([3.0, 0.005, 0.005]) ** 2, ties=Ties.empty("run_a", "run_b"),
+                   info=info)
+
+
+def test_a_pair_with_too_few_votes_counts_only_once_the_chain_fixes_its_alias():
+    aliases = {2: 3.0, 4: -1.5, 5: 0.6}
+    offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
+    for k in (4, 5):
+        offsets[k] = _few_votes(offsets[k])
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    for k in (4, 5):  # fixed by the chain, on the truth
+        assert out[k].status in ("ok", "coarse") and abs(out[k].d[0] - _true_along(s[k : k + 1])[0]) < 0.01
+    # GNSS poor everywhere and no unique objects: nothing fixes them, and they are not used at all
+    for r, t in trajs.items():
+        trajs[r] = t.with_positions(t.xyz, np.full_like(t.sd, 5.0))
+    offsets, _, _ = _chain(aliases, statuses={0: "ok", 3: "ok"}, unique_every=1000)
+    offsets[4] = _few_votes(offsets[4])
+    for options in (AlongTrackOptions(), AlongTrackOptions(enabled=False)):
+        out, _ = resolve_along_track(offsets, trajs, options)
+        assert out[4].status == "no_consensus" and np.isnan(out[4].cov).all() and not len(out[4].ties)
+        assert all(o.status != "no_consensus" for k, o in enumerate(out) if k != 4)
+
+
+def test_the_rate_of_a_few_votes_pair_with_a_noisy_profile_steers_nothing():
+    """Two pairs with too few votes measured a rate 100 mm/m off, and their profiles' peaks crowd
+    0.15 m apart: their rates are not used, and the chain is fixed through them even with no
+    gate on stray rates. With ordinary profiles (peaks an alias apart) the same rates count, and
+    the chain breaks there."""
+    aliases = {2: 3.0, 4: -1.5, 5: 0.6, 7: -3.0, 9: 1.5}
+    no_gate = AlongTrackOptions(rate_radius=0.0, rate_gate=1e9)
+    for crowded in (True, False):
+        offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
+        for k in (4, 6):
+            offsets[k] = _few_votes(offsets[k], crowded=crowded, rate=0.1 * (-1) ** k)
+        out, _ = resolve_along_track(offsets, trajs, no_gate)
+        fixed = [out[k].status in ("ok", "coarse") for k in (5, 7)]
+        assert all(fixed) if crowded else not any(fixed), (crowded, [o.status for o in out])
+        for k, o in enumerate(out):
+            assert o.status in ("ambiguous", "no_consensus") or abs(o.d[0] - _true_along(s[k : k + 1])[0]) < 0.01

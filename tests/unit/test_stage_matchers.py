@@ -196,3 +196,22 @@ def test_icp_started_on_an_alias_finds_the_right_offset(replica, off_along):
     assert np.abs(off.d - truth).max() < 0.005, (off.d - truth) * 1000
     without = registry().create("matcher", "icp", {"alias_check": False}).match(a, ka, b, kb, start)
     assert np.abs(without.d - truth).max() > 0.1  # plain ICP stays on the alias
+
+
+def test_a_pair_with_too_few_votes_is_checked_densely_but_never_ok(replica):
+    """Below ``min_inliers`` votes (a sparse detector), the dense clouds still give across and
+    up and the along-track profile the chain resolves; the votes' alias is never trusted."""
+    a, b, truth = replica
+    ka, kb = _detect("iss", PRESETS["tunnel"], a, b)
+    strict = {"min_inliers": 100_000}  # every peak counts as too few votes
+    off = registry().create("matcher", "pair_voting", strict).match(a, ka, b, kb)
+    assert off.status == "ambiguous" and len(off.ties) == 0, off.status
+    assert off.info["few_votes"] >= 2
+    across = np.cross([0.0, 0.0, 1.0], AXIS)
+    assert abs((off.d - truth) @ across) < 0.005 and abs(off.d[2] - truth[2]) < 0.005
+    prof = off.info["alias_profile"]  # the true alias is among the profile's shifts
+    t = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+    along = (truth - off.d) @ np.asarray(prof["axis"])
+    assert t.min() <= along <= t.max()
+    refused = registry().create("matcher", "pair_voting", dict(strict, min_check_votes=100_000)).match(a, ka, b, kb)
+    assert refused.status == "no_consensus"
