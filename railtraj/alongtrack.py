@@ -141,6 +141,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                 u_best = pair.u0 + shift * pair.along
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
+            out[pair.index] = _unless_few_votes(out[pair.index])
             report.append({"run_a": run_a, "run_b": run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
                            "status_before": o.status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
@@ -148,12 +149,12 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                            "candidate_shifts_m": np.round(pair.shift, 2).tolist()})
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
         demoted = _apply(out[k], 0.0, False, trajectories)
-        out[k] = replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close"))
+        out[k] = _unless_few_votes(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
         report.append({"run_a": out[k].run_a, "run_b": out[k].run_b, "tile_a": out[k].tile_a,
                        "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
                        "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
                        "candidate_shifts_m": []})
-    out = [_within_reach(_unless_few_votes(o), options) for o in out]
+    out = [_within_reach(_unless_few_votes(o), options) for o in out]  # (and those outside any chain)
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,

@@ -289,8 +289,9 @@ def test_a_pair_with_too_few_votes_counts_only_once_the_chain_fixes_its_alias():
     offsets, _, _ = _chain(aliases, statuses={0: "ok", 3: "ok"}, unique_every=1000)
     offsets[4] = _few_votes(offsets[4])
     for options in (AlongTrackOptions(), AlongTrackOptions(enabled=False)):
-        out, _ = resolve_along_track(offsets, trajs, options)
+        out, report = resolve_along_track(offsets, trajs, options)
         assert out[4].status == "no_consensus" and np.isnan(out[4].cov).all() and not len(out[4].ties)
+        assert all(r["status"] == "no_consensus" for r in report if r["tile_a"] == offsets[4].tile_a)
         assert all(o.status != "no_consensus" for k, o in enumerate(out) if k != 4)
 
 
