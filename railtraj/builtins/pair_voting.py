@@ -60,6 +60,9 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
         raise ConfigError(f"matcher={matcher} needs max_misalignment > 0 and inlier_radius > 0")
     if o.window_length < 0:
         raise ConfigError(f"matcher={matcher} window_length={o.window_length}: give metres > 0, or 0 for one rigid fit")
+    if o.min_check_votes < 1:
+        raise ConfigError(f"matcher={matcher} min_check_votes={o.min_check_votes}: give 1 or more votes "
+                          f"(min_check_votes >= min_inliers={o.min_inliers} checks no pair below min_inliers)")
     if o.tie_positions not in ("offset", "keypoints"):
         raise ConfigError(f"tie_positions={o.tie_positions!r}: choose offset or keypoints")
     settings = VoteSettings(inlier_radius=o.inlier_radius, n_peaks=o.n_peaks, min_inliers=o.min_inliers,

@@ -215,3 +215,8 @@ def test_a_pair_with_too_few_votes_is_checked_densely_but_never_ok(replica):
     assert t.min() <= along <= t.max()
     refused = registry().create("matcher", "pair_voting", dict(strict, min_check_votes=100_000)).match(a, ka, b, kb)
     assert refused.status == "no_consensus"
+
+
+def test_min_check_votes_below_one_is_refused():
+    with pytest.raises(ConfigError, match="min_check_votes=0: give 1 or more"):
+        registry().create("matcher", "pair_voting", {"min_check_votes": 0})
