@@ -89,3 +89,20 @@ def test_the_adjustment_without_control_ends_at_the_averaging_bound():
 
     before, after = bound_gap({"recentre": False}), bound_gap({})
     assert after < 0.01 and after < 0.5 * before, (before, after)
+
+
+def test_a_step_in_one_run_s_sd_moves_the_runs_gradually_not_at_once():
+    """Where a run's sd steps (its widened sd ends), the weighted mean steps too; shifting every
+    run by that step within a metre would put it at different places in runs still misaligned
+    along the track. The shift ramps over about SMOOTH_M instead."""
+    sd_a = np.where((np.arange(0, LENGTH / SPEED, 0.1) * SPEED < 200)[:, None], 0.3, 0.6) * np.ones(3)
+    a = _run("a", 1000.0, 0.0, sd=sd_a)
+    b = _run("b", 2000.0, 0.0, sd=0.6)
+    corrected = {"a": _shifted(a, lambda s: np.column_stack([0.1 + 0 * s, 0 * s, 0 * s])),
+                 "b": _shifted(b, lambda s: np.column_stack([-0.1 + 0 * s, 0 * s, 0 * s]))}
+    out, _ = recentre({"a": a, "b": b}, corrected, {"a": sd_a, "b": b.sd})
+    shift = (corrected["a"].xyz - out["a"].xyz)[:, 0]  # what was taken off run a, along its track
+    s = a.xyz[:, 0] - 530000
+    assert abs(shift[s < 150].mean() - 0.06) < 0.005 and abs(shift[s > 250].mean()) < 0.005  # the weighted means
+    assert np.abs(np.diff(shift) / np.diff(s)).max() < 0.005  # a 6 cm step spread over ~20 m, not 1 m
+    np.testing.assert_allclose(out["a"].xyz - out["b"].xyz, corrected["a"].xyz - corrected["b"].xyz, atol=1e-9)
