@@ -101,7 +101,7 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         return failed(tile_a, tile_b, "no_consensus" if few_votes else "no_overlap", info, chosen.fit.d,
                       inliers=chosen.peak.count)
     if refiner is not None and s.window_length > 0:
-        return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
+        return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, few_votes)
     if rival >= s.ambiguity_ratio:
         return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
@@ -115,7 +115,8 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
 
 
-def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info) -> TileOffset:
+def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info,
+                        few_votes: bool = False) -> TileOffset:
     """Refine as a curve of offsets along the track (:mod:`railtraj.matching.piecewise`), then
     judge it: ``ambiguous`` if an along-track alias of the curve fits nearly as well,
     ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction or fewer than
@@ -157,7 +158,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve was fitted
     ia, ib = ia[keep], ib[keep]
     degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
-    if rival >= s.ambiguity_ratio or ("few_votes" in info and not degenerate):
+    if rival >= s.ambiguity_ratio or (few_votes and not degenerate):
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
     if degenerate:
