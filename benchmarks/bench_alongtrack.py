@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from railtraj.georef import PoseCache
 from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
 from railtraj.plugins import registry
 from railtraj.sim import generate, load_truth
@@ -96,7 +97,8 @@ def score(survey_dir: Path, result) -> dict:
     off = offset_errors(truth.trajectories, result.trajectories, result.offsets)
     coarse = offset_errors(truth.trajectories, result.trajectories,  # scored like ok pairs
                            [replace(o, status="ok" if o.status == "coarse" else "x") for o in result.offsets])
-    ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t), axis=1) for t in result.ties]
+    poses = PoseCache()
+    ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t, poses), axis=1) for t in result.ties]
     ties = np.concatenate(ties) if ties else np.zeros(0)
     used = sum(o.status == "ok" or bool(o.info.get("resolved")) for o in result.offsets)
     return {

@@ -124,18 +124,19 @@ def c2c(points_a: np.ndarray, points_b: np.ndarray, max_dist: float = 1.0, n_sam
             "nn_p95": float(np.percentile(nn, 95))}
 
 
-def tie_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], ties) -> np.ndarray:
+def tie_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory], ties, poses=None) -> np.ndarray:
     """Error (n, 3) east/north/up of each tie's offset ``xyz_a - xyz_b`` against the true one.
 
     The object run b measured at ``xyz_b`` (time ``time_b``) truly lies at ``X`` (b's delivered
     trajectory swapped for its true one); run a, measuring it at ``time_a``, put it at ``X``
     moved by a's drift then. The true offset is that point minus ``xyz_b``; the error is
     ``xyz_a`` minus that point. Exact for the simulator, whose errors are trajectory errors.
+    ``poses`` (a :class:`railtraj.georef.PoseCache`) serves many tie sets of the same runs.
     """
     from railtraj.georef import regeoreference_points
 
-    x_true = regeoreference_points(ties.xyz_b, ties.time_b, delivered[ties.run_b], truth[ties.run_b])
-    a_true = regeoreference_points(x_true, ties.time_a, truth[ties.run_a], delivered[ties.run_a])
+    x_true = regeoreference_points(ties.xyz_b, ties.time_b, delivered[ties.run_b], truth[ties.run_b], poses)
+    a_true = regeoreference_points(x_true, ties.time_a, truth[ties.run_a], delivered[ties.run_a], poses)
     return ties.xyz_a - a_true
 
 
@@ -144,17 +145,18 @@ def offset_errors(truth: dict[str, Trajectory], delivered: dict[str, Trajectory]
     ``offsets``: the weighted mean of its ties' errors (its estimate where its features are), or
     for a pair without ties (resolved jointly along the track) the error at its reference point."""
     from railtraj.data import Ties
+    from railtraj.georef import PoseCache
 
-    out = {}
+    out, poses = {}, PoseCache()
     for k, o in enumerate(offsets):
         if o.status != "ok":
             continue
         if o.ties is not None and len(o.ties):
-            out[k] = np.average(tie_errors(truth, delivered, o.ties), axis=0, weights=o.ties.weight)
+            out[k] = np.average(tie_errors(truth, delivered, o.ties, poses), axis=0, weights=o.ties.weight)
         elif "ref_point" in o.info.get("piecewise", {}):  # an offset observed at its reference point
             xyz_b = np.array([o.info["piecewise"]["ref_point"]])
             tie = Ties(o.run_a, o.run_b, [o.info["time_a"]], [o.info["time_b"]], xyz_b + o.d, xyz_b, [1.0])
-            out[k] = tie_errors(truth, delivered, tie)[0]
+            out[k] = tie_errors(truth, delivered, tie, poses)[0]
     return out
 
 
