@@ -1,10 +1,18 @@
 """Executors: how per-tile work is spread over the machine.
 
 ``serial`` runs items one after another in this process (simplest to debug; the stages' own
-libraries, Open3D and kiss-icp, already use every core). ``process`` runs items in a pool of
-worker processes, for stages that are single-threaded Python/numpy. Workers start from a fork
-server, not by forking this process: a fork taken while Open3D's or a KD-tree's threads hold a
-lock deadlocks the child (seen when a script generated a survey and then ran the pipeline).
+libraries, Open3D and SciPy's KD-tree, already use a second core for part of the work). ``process``
+runs items in a pool of worker processes. Workers start from a fork server, not by forking this
+process: a fork taken while Open3D's or a KD-tree's threads hold a lock deadlocks the child (seen
+when a script generated a survey and then ran the pipeline).
+
+The pool is kept for the job's later stages (its workers keep their tile caches and have
+imported Open3D already) and shut down by :meth:`ProcessExecutor.close`. Items go to the workers
+in contiguous chunks: the pipeline orders its items so that the pairs sharing a tile are
+neighbours, so one worker builds that tile's plane target and KD-tree once instead of each
+worker building it again. Each worker runs its libraries on one thread: with two workers on two
+cores, threads of their own only fight for the same cores. Results are the same as ``serial``'s
+(nothing computed depends on which process or thread did it).
 """
 
 from __future__ import annotations
@@ -43,29 +51,76 @@ class SerialExecutor:
         return out
 
 
+#: chunks per worker a map is cut into: enough that the last chunks balance the load, few
+#: enough that most pairs sharing a tile land in one chunk
+CHUNKS_PER_WORKER = 4
+
+
+def chunks(n: int, workers: int) -> list[range]:
+    """Contiguous index ranges covering ``range(n)``, about ``CHUNKS_PER_WORKER`` per worker."""
+    size = max(1, -(-n // (workers * CHUNKS_PER_WORKER)))
+    return [range(k, min(k + size, n)) for k in range(0, n, size)]
+
+
+def _run_chunk(fn: Callable, items: list) -> list:
+    return [fn(item) for item in items]
+
+
+def _single_threaded_worker() -> None:
+    """Pool initializer: the libraries' own threads off (the pool already fills the cores)."""
+    from railtraj.matching import threads
+    from railtraj.o3d import o3d
+
+    threads.set_query_threads(False)
+    o3d.utility.set_max_threads(1)
+
+
 class ProcessExecutor:
-    """Runs items in a pool of worker processes; results come back in input order."""
+    """Runs items in a pool of worker processes, in contiguous chunks; results come back in input
+    order. The pool lives until :meth:`close` (the CLI closes it when the job ends)."""
 
     def __init__(self, workers: int = 0) -> None:
         self.workers = workers or os.cpu_count() or 1
+        self._pool: ProcessPoolExecutor | None = None
 
     def map(self, fn: Callable, items: Iterable, progress: Callable[[int, int], Any] | None = None) -> list:
         items = list(items)
         if self.workers == 1 or len(items) <= 1:
             return SerialExecutor().map(fn, items, progress)
         out: list = [None] * len(items)
-        context = multiprocessing.get_context("forkserver")
-        with ProcessPoolExecutor(max_workers=self.workers, mp_context=context) as pool:
-            futures = {pool.submit(fn, item): k for k, item in enumerate(items)}
-            try:
-                for done, fut in enumerate(as_completed(futures), start=1):
-                    out[futures[fut]] = fut.result()
-                    if progress:
-                        progress(done, len(items))
-            except BaseException:  # a failed item or a memory stop: queued items never start
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
+        pool = self._start()
+        futures = {pool.submit(_run_chunk, fn, items[r.start:r.stop]): r for r in chunks(len(items), self.workers)}
+        try:
+            done = 0
+            for fut in as_completed(futures):
+                part = futures[fut]
+                out[part.start:part.stop] = fut.result()
+                done += len(part)
+                if progress:
+                    progress(done, len(items))
+        except BaseException:  # a failed item or a memory stop: queued chunks never start
+            for fut in futures:
+                fut.cancel()
+            self.close()
+            raise
         return out
+
+    def close(self) -> None:
+        """Shut the pool down (its workers exit); the next map starts a new one."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __getstate__(self) -> dict:
+        # stages travel to the workers with each job: the pool stays here
+        return {"workers": self.workers, "_pool": None}
+
+    def _start(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            context = multiprocessing.get_context("forkserver")
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context,
+                                             initializer=_single_threaded_worker)
+        return self._pool
 
 
 @hookimpl

@@ -10,10 +10,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from railtraj.matching.threads import query_workers
+
 
 def ball_members(tree: cKDTree, centers: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Flat (center index, point index) arrays of every point within ``radius`` of each center."""
-    lists = tree.query_ball_point(np.asarray(centers, float), radius, workers=-1)
+    lists = tree.query_ball_point(np.asarray(centers, float), radius, workers=query_workers(len(centers)))
     lengths = np.fromiter((len(x) for x in lists), np.int64, len(lists))
     if lengths.sum() == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)

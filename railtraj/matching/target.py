@@ -18,17 +18,8 @@ from scipy.spatial import cKDTree
 
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.neighbours import smallest_eigen
+from railtraj.matching.threads import query_workers
 from railtraj.matching.voxel import VoxelGrid, block_covariance, voxelize
-
-#: queries below this many points run on the calling thread: SciPy starts Python threads for
-#: ``workers=-1`` on every call (~0.3 ms each), which costs more than it saves below ~3000
-#: points (measured: 100 points 0.05 ms on one thread, 0.27 ms on two)
-MIN_THREADED_QUERY = 3_000
-
-
-def query_workers(n: int) -> int:
-    """``workers`` for a KD-tree query of ``n`` points (results do not depend on it)."""
-    return -1 if n >= MIN_THREADED_QUERY else 1
 
 
 @dataclass(frozen=True)

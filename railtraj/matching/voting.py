@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.neighbours import ball_members
+from railtraj.matching.threads import query_workers
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,7 @@ def counts(votes: Votes, radius: float) -> np.ndarray:
     if len(votes) == 0:
         return np.zeros(0, np.int64)
     tree = cKDTree(votes.d)
-    return tree.query_ball_point(votes.d, radius, return_length=True, workers=-1)
+    return tree.query_ball_point(votes.d, radius, return_length=True, workers=query_workers(len(votes.d)))
 
 
 def mean_shift(votes: Votes, t: np.ndarray, radius: float, steps: int = 5) -> Peak:

@@ -1,0 +1,65 @@
+"""executor=process: results in item order whatever order chunks finish in, contiguous chunks, one
+pool for the whole job (workers and their caches survive between maps), single-threaded workers,
+errors re-raised with the pool shut down, and no worker outliving close()."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from railtraj.builtins.executors import ProcessExecutor, chunks
+
+
+def slow_square(x: int) -> int:
+    time.sleep(0.02 * (x % 3))  # later chunks may finish first
+    if x < 0:
+        raise ValueError(f"negative item {x}")
+    return x * x
+
+
+def whoami(_: int) -> tuple[int, bool]:
+    from railtraj.matching import threads
+
+    return os.getpid(), threads.query_workers(10**6) == 1
+
+
+def test_chunks_are_contiguous_cover_every_item_once_and_balance_the_workers():
+    for n in (1, 2, 7, 91, 1000):
+        parts = chunks(n, 2)
+        assert [k for r in parts for k in r] == list(range(n))
+        assert len(parts) <= 8 and (n < 8 or len(parts) >= 7)
+    assert chunks(91, 2)[0] == range(0, 12)  # neighbours (pairs sharing a tile) stay together
+
+
+def test_results_in_item_order_with_progress_one_pool_and_clean_shutdown():
+    executor = ProcessExecutor(workers=2)
+    calls = []
+    items = list(range(23))
+    assert executor.map(slow_square, items, progress=lambda d, n: calls.append((d, n))) == [x * x for x in items]
+    assert calls[-1] == (23, 23) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    pool = executor._pool
+    first = executor.map(whoami, range(8))
+    second = executor.map(whoami, range(8))
+    pids = {pid for pid, _ in first + second}
+    assert executor._pool is pool and pids <= set(pool._processes)  # one pool serves every map
+    assert all(single for _, single in first + second), "workers must not start threads of their own"
+    with pytest.raises(ValueError, match="negative item -1"):
+        executor.map(slow_square, [1, -1, 2, 4, 5, 6, 7, 8, 9])
+    assert executor._pool is None  # a failed map takes its pool down ...
+    assert executor.map(slow_square, [3, 4]) == [9, 16]  # ... and the next map starts a new one
+    executor.close()
+    assert executor._pool is None
+    for pid in pids:
+        deadline = time.monotonic() + 10
+        while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not Path(f"/proc/{pid}").exists(), f"worker {pid} still running"
+
+
+def test_the_serial_process_keeps_its_threads():
+    from railtraj.matching import threads
+
+    assert threads.query_workers(10**6) == -1 and threads.query_workers(100) == 1
