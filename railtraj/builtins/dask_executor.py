@@ -8,8 +8,10 @@ scheduler instead (``dask scheduler``, ``dask worker tcp://host:8786``); its wor
 installed and must see the survey and out folders under the same paths.
 
 Workers log only critical messages: a failed task reaches the user as the exception it raised,
-re-raised here. Items are scattered to the workers rather than embedded in the tasks, so large keypoint sets
-travel worker to worker, not through the scheduler. Results come back in the order of the items,
+re-raised here. Items go out in contiguous chunks, as with the ``process`` executor (the pairs
+sharing a tile in one worker, the libraries' own threads off), scattered to the workers rather
+than embedded in the tasks, so large keypoint sets travel worker to worker, not through the
+scheduler. Results come back in the order of the items,
 whatever order they finish in, so the output matches the ``serial`` executor's bit for bit.
 """
 
@@ -54,14 +56,20 @@ class DaskExecutor:
             return []
         from distributed import as_completed
 
+        from railtraj.builtins.executors import chunks, run_chunk
+
         client = self._connect()
-        data = client.scatter(items, hash=False)
-        futures = [client.submit(fn, d, pure=False) for d in data]
-        index = {f.key: k for k, f in enumerate(futures)}
+        parts = chunks(len(items), self.workers)
+        data = client.scatter([items[r.start:r.stop] for r in parts], hash=False)
+        futures = [client.submit(run_chunk, fn, d, pure=False) for d in data]
+        index = {f.key: r for r, f in zip(parts, futures, strict=True)}
         out: list = [None] * len(items)
         try:
-            for done, fut in enumerate(as_completed(futures), start=1):
-                out[index[fut.key]] = fut.result()
+            done = 0
+            for fut in as_completed(futures):
+                part = index[fut.key]
+                out[part.start:part.stop] = fut.result()
+                done += len(part)
                 if progress:
                     progress(done, len(items))
         finally:

@@ -65,17 +65,15 @@ def chunks(n: int, workers: int) -> list[range]:
     return [range(k, min(k + size, n)) for k in range(0, n, size)]
 
 
-def _run_chunk(fn: Callable, items: list) -> list:
-    return [fn(item) for item in items]
-
-
-def _single_threaded_worker() -> None:
-    """Pool initializer: the libraries' own threads off (the pool already fills the cores)."""
+def run_chunk(fn: Callable, items: list) -> list:
+    """``fn`` over ``items`` in a worker, with the libraries' own threads off: the pool (or the
+    dask cluster) already fills the cores, and threads of their own only fight for them."""
     from railtraj.matching import threads
     from railtraj.o3d import o3d
 
     threads.set_query_threads(False)
     o3d.utility.set_max_threads(1)
+    return [fn(item) for item in items]
 
 
 class ProcessExecutor:
@@ -92,7 +90,7 @@ class ProcessExecutor:
             return SerialExecutor().map(fn, items, progress)
         out: list = [None] * len(items)
         pool = self._start()
-        futures = {pool.submit(_run_chunk, fn, items[r.start:r.stop]): r for r in chunks(len(items), self.workers)}
+        futures = {pool.submit(run_chunk, fn, items[r.start:r.stop]): r for r in chunks(len(items), self.workers)}
         try:
             done = 0
             for fut in as_completed(futures):
@@ -121,8 +119,7 @@ class ProcessExecutor:
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
             context = multiprocessing.get_context("forkserver")
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context,
-                                             initializer=_single_threaded_worker)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
         return self._pool
 
 
