@@ -37,7 +37,7 @@ class PipelineConfig:
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
-    tile_cache_gb: float = 1.0         # whole tiles kept per process between detection and matching
+    tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement
 

@@ -79,7 +79,7 @@ class PipelineOptions:
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
-    tile_cache_gb: float = DEFAULT_BUDGET_GB  # whole tiles kept per process between detect and match
+    tile_cache_gb: float = DEFAULT_BUDGET_GB  # whole tiles kept between detect and match, shared by the workers
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)
 
@@ -136,13 +136,15 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
              sum(len(r.tiles) for r in survey.runs.values()), len(pairs))
 
     t0 = time.perf_counter()
+    # each worker process keeps its own tile cache: their budgets share the one given
+    per_process = replace(options, tile_cache_gb=options.tile_cache_gb / max(1, int(getattr(stages.executor, "workers", 1))))
     order = visit_order(pairs)
     tiles = list(dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
                                                           (pairs[k].run_b, pairs[k].tile_b.path))))
     tile_keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
     detected, tiles_reused = cached_map(
         stages.executor, detect_tile,
-        [(run, path, trajectories[run].span, stages, options.tile_cache_gb) for run, path in tiles],
+        [(run, path, trajectories[run].span, stages, per_process.tile_cache_gb) for run, path in tiles],
         tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
     keypoints = dict(zip(tiles, detected, strict=True))
     clock["detect"] = time.perf_counter() - t0
@@ -155,7 +157,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
                                 {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
                  if cache else "" for k in backwards]
     jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
-             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options) for k in backwards]
+             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, per_process) for k in backwards]
     matched, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
                                        progress=progress or _log_progress("matched", "tile pairs"))
     results: list[PairResult] = [None] * len(pairs)  # type: ignore[list-item]
