@@ -44,6 +44,7 @@ from railtraj.io.survey import (
     unparsed_crs_note,
 )
 from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
+from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd
@@ -142,10 +143,11 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     tiles = list(dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
                                                           (pairs[k].run_b, pairs[k].tile_b.path))))
     tile_keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
-    detected, tiles_reused = cached_map(
-        stages.executor, detect_tile,
-        [(run, path, trajectories[run].span, stages, per_process.tile_cache_gb) for run, path in tiles],
-        tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
+    with blas_one_thread():  # (railtraj.matching.threads: faster here, same results)
+        detected, tiles_reused = cached_map(
+            stages.executor, detect_tile,
+            [(run, path, trajectories[run].span, stages, per_process.tile_cache_gb) for run, path in tiles],
+            tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
     keypoints = dict(zip(tiles, detected, strict=True))
     clock["detect"] = time.perf_counter() - t0
 
@@ -158,8 +160,9 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
                  if cache else "" for k in backwards]
     jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
              keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, per_process) for k in backwards]
-    matched, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
-                                       progress=progress or _log_progress("matched", "tile pairs"))
+    with blas_one_thread():
+        matched, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
+                                           progress=progress or _log_progress("matched", "tile pairs"))
     results: list[PairResult] = [None] * len(pairs)  # type: ignore[list-item]
     for k, r in zip(backwards, matched, strict=True):
         results[k] = r

@@ -68,11 +68,9 @@ def chunks(n: int, workers: int) -> list[range]:
 def run_chunk(fn: Callable, items: list) -> list:
     """``fn`` over ``items`` in a worker, with the libraries' own threads off: the pool (or the
     dask cluster) already fills the cores, and threads of their own only fight for them."""
-    from railtraj.matching import threads
-    from railtraj.o3d import o3d
+    from railtraj.matching.threads import single_threaded_worker
 
-    threads.set_query_threads(False)
-    o3d.utility.set_max_threads(1)
+    single_threaded_worker()
     return [fn(item) for item in items]
 
 
