@@ -93,7 +93,7 @@ DEFAULTS: list[Any] = [
     {"descriptor": "none"},         # descriptors do not separate repetitive tunnel geometry
     {"matcher": "pair_voting"},     # translation voting + dense check + refinement
     {"optimizer": "spline"},        # continuous per-run corrections, one robust sparse solve
-    {"executor": "process"},        # a worker per core (demo on 2 cores: 108 s serial, 88-89 s)
+    {"executor": "process"},        # a worker per core (demo on 2 cores: 96 s serial, 73 s)
     {"pipeline": "global"},
     "_self_",
 ]
