@@ -81,6 +81,7 @@ class ProcessExecutor:
     def __init__(self, workers: int = 0) -> None:
         self.workers = workers or os.cpu_count() or 1
         self._pool: ProcessPoolExecutor | None = None
+        self._abandoned: list[ProcessPoolExecutor] = []
 
     def map(self, fn: Callable, items: Iterable, progress: Callable[[int, int], Any] | None = None) -> list:
         items = list(items)
@@ -98,21 +99,35 @@ class ProcessExecutor:
                 if progress:
                     progress(done, len(items))
         except BaseException:  # a failed item or a memory stop: queued chunks never start
-            for fut in futures:
-                fut.cancel()
-            self.close()
+            self._abandon()
             raise
         return out
 
     def close(self) -> None:
-        """Shut the pool down (its workers exit); the next map starts a new one."""
+        """Shut the pool down (its workers exit); the next map starts a new one. The workers of
+        a pool a failed map left are stopped at once (a memory stop should not wait for them)."""
+        for pool in self._abandoned:
+            for worker in list((getattr(pool, "_processes", None) or {}).values()):
+                worker.terminate()
+            pool.shutdown(wait=True)
+        self._abandoned.clear()
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
+    def _abandon(self) -> None:
+        """Stop feeding the pool, without waiting for its running chunks: a memory stop repeats
+        its interrupt every half second, and a shutdown that waited could be cut short in the
+        middle, leaving the pool half shut (Python's exit then printed a traceback of its own).
+        :meth:`close`, called once the job has stopped, ends its workers."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+            self._abandoned.append(pool)
+
     def __getstate__(self) -> dict:
         # stages travel to the workers with each job: the pool stays here
-        return {"workers": self.workers, "_pool": None}
+        return {"workers": self.workers, "_pool": None, "_abandoned": []}
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:

@@ -48,10 +48,10 @@ def test_results_in_item_order_with_progress_one_pool_and_clean_shutdown():
     assert all(single for _, single in first + second), "workers must not start threads of their own"
     with pytest.raises(ValueError, match="negative item -1"):
         executor.map(slow_square, [1, -1, 2, 4, 5, 6, 7, 8, 9])
-    assert executor._pool is None  # a failed map takes its pool down ...
+    assert executor._pool is None  # a failed map stops feeding its pool ...
     assert executor.map(slow_square, [3, 4]) == [9, 16]  # ... and the next map starts a new one
     executor.close()
-    assert executor._pool is None
+    assert executor._pool is None and not executor._abandoned
     for pid in pids:
         deadline = time.monotonic() + 10
         while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
