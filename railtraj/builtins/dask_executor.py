@@ -119,8 +119,10 @@ class DaskExecutor:
 
             # dask's workers return freed memory to the system at once (MALLOC_TRIM_THRESHOLD_
             # 64 KiB); the matcher's large temporary arrays then fault their pages in again on
-            # every allocation: the demo's matching took 130 s of worker time instead of 104 s
-            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+            # every allocation: the demo's matching took 130 s of worker time instead of 104 s.
+            # Nor do they sample their tasks' stacks every 10 ms for dask's dashboard profile.
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                                  "distributed.worker.profile.enabled": False}):
                 cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=logging.CRITICAL)
             client = Client(cluster)
