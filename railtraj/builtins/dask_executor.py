@@ -11,8 +11,8 @@ Workers log only critical messages: a failed task reaches the user as the except
 re-raised here. Items go out in contiguous chunks, as with the ``process`` executor (the pairs
 sharing a tile in one worker, the libraries' own threads off), scattered to the workers rather
 than embedded in the tasks, so large keypoint sets travel worker to worker, not through the
-scheduler. Results come back in the order of the items,
-whatever order they finish in, so the output matches the ``serial`` executor's bit for bit.
+scheduler. Results come back in the order of the items, whatever order they finish in, so the
+output matches the ``serial`` executor's bit for bit.
 """
 
 from __future__ import annotations
