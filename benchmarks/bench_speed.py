@@ -1,6 +1,6 @@
 """Speed and memory of whole jobs (issue #12). Run:
 
-    .venv/bin/python benchmarks/bench_speed.py [--cases replica,demo,sizes] [--sizes 0.2,0.5,1.0]
+    .venv/bin/python benchmarks/bench_speed.py [--cases replica,demo,sizes,thesis] [--sizes 0.2,0.5,1.0]
         [--executors serial,process,dask] [--scenario mixed] [--work /tmp/railtraj-bench-speed]
 
 * ``replica``: the thesis replica tile pair (bench_local's ~2.3 M point simulated tile with a
@@ -10,6 +10,9 @@
   and cached first, not timed), once per executor.
 * ``sizes``: ``railtraj-sim <scenario> --size S`` surveys (generated once into ``--work``), the
   main job once per size and executor.
+* ``thesis``: a thesis-size survey (``mixed`` 1.33 times as long with 3500 points per profile: 3
+  runs, 207 tiles of ~1 M points, 123 tile pairs; generated once, ~4 min), the main job once per
+  executor (``--cases thesis --executors process``: ~4-5 min on 2 cores).
 
 Each job runs as its own ``railtraj`` process with ``resume=false``; the table shows its wall
 time, the stage seconds from metrics.json, its peak memory (metrics.json ``memory``: the largest
@@ -102,6 +105,26 @@ def simulated(scenario: str, size: float, work: Path) -> Path:
     return root / "survey"
 
 
+#: the thesis-size survey: the demo's tunnel 1.33 times as long, scanned with 3500 points per
+#: profile (x sqrt(1.33) = ~4000): 3 runs, 207 tiles of ~1 M points (median), 123 tile pairs
+THESIS_SIZE = {"size": 1.33, "points_per_profile": 3500}
+
+
+def thesis_size(work: Path) -> Path:
+    """The thesis-size survey (generated once into ``work``: ~4 min and 0.7 GB on 2 cores)."""
+    from dataclasses import replace
+
+    from railtraj.sim import generate
+    from railtraj.sim.scenarios import get_scenario
+
+    root = work / "thesis-size"
+    if not (root / "survey").is_dir():
+        scn = get_scenario("mixed")
+        scn = replace(scn, scanner=replace(scn.scanner, points_per_profile=THESIS_SIZE["points_per_profile"]))
+        generate(scn, root, seed=0, size=THESIS_SIZE["size"])
+    return root / "survey"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="replica,demo,sizes")
@@ -121,6 +144,8 @@ def main() -> None:
 
         demo_survey()  # generated and cached before timing
         jobs.append(("demo (cached)", None))
+    if "thesis" in cases:
+        jobs.append(("thesis-size", thesis_size(args.work)))
     if "sizes" in cases:
         jobs += [(f"{args.scenario} --size {s}", simulated(args.scenario, float(s), args.work))
                  for s in args.sizes.split(",")]
