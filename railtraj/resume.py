@@ -159,9 +159,40 @@ class Cache:
                 path.unlink(missing_ok=True)
 
 
+#: the job process an executor's worker computes for (None in the job's own process)
+_job_pid: int | None = None
+
+
+def serve_job(pid: int) -> None:
+    """In an executor's worker: store results for the job process ``pid`` only while it lives.
+
+    A job killed with SIGKILL left its workers finishing their chunks and storing results it
+    never counted (a resumed run found one pair more in its cache than the killed one had)."""
+    global _job_pid
+    _job_pid = pid
+
+
+def job_gone() -> bool:
+    """Whether the job this worker computes for has died (a zombie counts as dead)."""
+    if _job_pid is None:
+        return False
+    try:
+        os.kill(_job_pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    try:  # killed but not yet reaped by its parent
+        return Path(f"/proc/{_job_pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return False
+
+
 def _store(path: Path, value: Any) -> None:
     with atomic_write(path, "wb") as f:
         pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+        if job_gone():  # checked last, before the file takes its name: the next run prunes the part
+            os._exit(1)
 
 
 def _compute_and_store(task: tuple) -> Any:

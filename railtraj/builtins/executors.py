@@ -74,6 +74,27 @@ def run_chunk(fn: Callable, items: list) -> list:
     return [fn(item) for item in items]
 
 
+def _serve(job_pid: int) -> None:
+    """Pool initializer: the worker serves the job process ``job_pid`` and dies with it. A job
+    killed with SIGKILL left its workers blocked on their task queues for ever (and their fork
+    server with them), after they had finished their chunks and stored results it never
+    counted. Now a worker stores nothing once the job is gone (:func:`railtraj.resume.job_gone`,
+    checked before a result takes its name) and exits within a second."""
+    import threading
+    import time
+
+    from railtraj import resume
+
+    resume.serve_job(job_pid)
+
+    def watch() -> None:
+        while not resume.job_gone():
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="railtraj-job-watch", daemon=True).start()
+
+
 class ProcessExecutor:
     """Runs items in a pool of worker processes, in contiguous chunks; results come back in input
     order. The pool lives until :meth:`close` (the CLI closes it when the job ends)."""
@@ -132,7 +153,8 @@ class ProcessExecutor:
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
             context = multiprocessing.get_context("forkserver")
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=context,
+                                             initializer=_serve, initargs=(os.getpid(),))
         return self._pool
 
 

@@ -5,6 +5,9 @@ errors re-raised with the pool shut down, and no worker outliving close()."""
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -63,3 +66,41 @@ def test_the_serial_process_keeps_its_threads():
     from railtraj.matching import threads
 
     assert threads.query_workers(10**6) == -1 and threads.query_workers(100) == 1
+
+
+JOB = """
+import os, sys, time
+from railtraj.builtins.executors import ProcessExecutor
+
+def slow(x):
+    print(os.getpid(), flush=True)
+    time.sleep(60)
+
+if __name__ == "__main__":
+    ProcessExecutor(workers=2).map(slow, range(8))
+"""
+
+
+def test_workers_die_with_a_killed_job(tmp_path):
+    """A job killed with SIGKILL takes its workers with it: none goes on computing and storing
+    results the job will never count (a resumed run found one pair more than the killed one)."""
+    script = tmp_path / "job.py"
+    script.write_text(JOB)
+    job = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    pids: set[int] = set()
+    while len(pids) < 2:  # both workers are inside a task
+        line = job.stdout.readline()
+        assert line, "the job ended before its workers started"
+        if line.strip().isdigit():
+            pids.add(int(line))
+    job.send_signal(signal.SIGKILL)
+    job.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_alive(pid) for pid in pids), "a worker outlived its killed job"
+
+
+def _alive(pid: int) -> bool:
+    stat = Path(f"/proc/{pid}/stat")
+    return stat.exists() and stat.read_text().split()[2] != "Z"
