@@ -55,11 +55,7 @@ def test_results_in_item_order_with_progress_one_pool_and_clean_shutdown():
     assert executor.map(slow_square, [3, 4]) == [9, 16]  # ... and the next map starts a new one
     executor.close()
     assert executor._pool is None and not executor._abandoned
-    for pid in pids:
-        deadline = time.monotonic() + 10
-        while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not Path(f"/proc/{pid}").exists(), f"worker {pid} still running"
+    assert not _survivors(pids), "a worker still running after close()"
 
 
 def test_the_serial_process_keeps_its_threads():
@@ -95,12 +91,22 @@ def test_workers_die_with_a_killed_job(tmp_path):
             pids.add(int(line))
     job.send_signal(signal.SIGKILL)
     job.wait()
-    deadline = time.monotonic() + 10
-    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+    assert not _survivors(pids), "a worker outlived its killed job"
+
+
+def _survivors(pids: set[int], seconds: float = 10.0) -> set[int]:
+    """The processes among ``pids`` still running (not zombies) after waiting up to ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while True:
+        alive = {pid for pid in pids if _alive(pid)}
+        if not alive or time.monotonic() >= deadline:
+            return alive
         time.sleep(0.05)
-    assert not any(_alive(pid) for pid in pids), "a worker outlived its killed job"
 
 
 def _alive(pid: int) -> bool:
     stat = Path(f"/proc/{pid}/stat")
-    return stat.exists() and stat.read_text().split()[2] != "Z"
+    try:
+        return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
