@@ -135,7 +135,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
             o, resolved = offsets[pair.index], verdict == "resolved"
             extra = _placement_variance(o, shift, pair.sd, options)
-            coarse = resolved and (pair.sd**2 + extra > options.max_ok_sd**2 or o.status == "degenerate")
+            coarse = resolved and (pair.sd**2 + extra > options.max_ok_sd**2 or _degenerate_fit(o))
             out[pair.index] = _apply(o, shift, resolved, trajectories, coarse=coarse, alias_var=extra)
             if not resolved:  # observed at its likeliest candidate, or at the prediction if none is near
                 u_best = pair.u0 + shift * pair.along
@@ -471,15 +471,24 @@ def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTr
       is placed by the fitness profile, sampled every ``step`` (5 cm, more on sparse scans) and
       often flat-topped there, so its peak is known to within a step: ``step^2 / 12``. On a
       15 cm-gap scan a pair moved 3.06 m sat 6.6 cm off while its fit claimed 5 mm.
-    * **A degenerate fit** (too few windows for the drift's curvature, or too vague somewhere):
+    * **A degenerate fit** (too few windows for the drift's curvature, or too vague somewhere;
+      :func:`_degenerate_fit`):
       the chain can fix its alias, but not its centimetres. Of 36 such pairs fixed on 12
       simulated surveys, 9 sat more than 2 cm off and one 5.3 cm off with a claimed 1.3 cm, so
       its sd is raised to ``max_pair_sd``. (Such pairs are ``coarse``.)
     """
     extra = float(o.info.get("alias_profile", {}).get("step", 0.05)) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
-    if o.status == "degenerate":
+    if _degenerate_fit(o):
         extra += max(options.max_pair_sd**2 - sd**2, 0.0)
     return extra
+
+
+def _degenerate_fit(o: TileOffset) -> bool:
+    """Whether the pair's curve is degenerate (too few windows, or too vague somewhere), also
+    when the matcher reported it ``ambiguous``, which it checks first. Such a pair fixed by the
+    chain became ``ok``: in session 10's trial of a wider reference, 3 of 5 windows agreeing to
+    1 cm, 10 cm from the other two (a featureless section), gave an ``ok`` pair 6.2 cm off."""
+    return o.status == "degenerate" or bool(o.info.get("degenerate_fit", False))
 
 
 def _unless_few_votes(o: TileOffset) -> TileOffset:

@@ -158,6 +158,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve was fitted
     ia, ib = ia[keep], ib[keep]
     degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
+    info["degenerate_fit"] = degenerate  # also when ambiguous: should the chain fix it, it is coarse
     if rival >= s.ambiguity_ratio or (few_votes and not degenerate):
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))

@@ -195,6 +195,16 @@ def test_a_degenerate_pair_fixed_on_its_own_alias_is_coarse_with_a_wider_sd():
     assert out[7].status == "ok" and out[7].cov[0, 0] < 0.01**2  # an ambiguous pair on its own fit
 
 
+def test_an_ambiguous_pair_with_a_degenerate_fit_fixed_by_the_chain_is_coarse_not_ok():
+    """The matcher reports ``ambiguous`` before ``degenerate``; its curve is no better for that."""
+    offsets, trajs, s = _chain({}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    offsets[7] = replace(offsets[7], info=dict(offsets[7].info, degenerate_fit=True))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[7].status == "coarse" and out[7].cov[0, 0] >= 0.02**2 * 0.999
+    plain, _ = resolve_along_track(_chain({}, statuses={0: "ok", 3: "ok", 6: "ok"})[0], trajs, AlongTrackOptions())
+    assert plain[7].status == "ok"
+
+
 def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_put_it():
     """A flat profile gives no chain prediction: the pair's across and up are observed at the
     place the input trajectories agree on, not at the matcher's alias 3 m away."""
