@@ -10,7 +10,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from railtraj.matching.piecewise import fit_curve, piecewise_fit, track_frame, window_ties
+from railtraj.matching.piecewise import (
+    along_profile,
+    fit_curve,
+    piecewise_fit,
+    reference_tree,
+    track_frame,
+    window_ties,
+)
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
 from railtraj.matching.target import build_target
 
@@ -79,3 +86,22 @@ def test_window_ties_carry_the_true_offset_where_and_when_they_are(stretched):
     np.testing.assert_allclose(xyz_a - xyz_b, true_d[k], atol=0.005)
     # both runs pass each tie's place at the same time in this synthetic pair (5 m/s, 0.2 s per m)
     np.testing.assert_allclose(time_a, time_b, atol=0.1)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_along_profile_equals_a_nearest_neighbour_query_per_shift(seed):
+    """The capsule search finds every reference point that can be nearest within tau."""
+    rng = np.random.default_rng(seed)
+    ref = tunnel_tile(seed=seed).xyz
+    pts = ref[rng.choice(len(ref), 3000, replace=False)] + rng.normal(0, 0.01, (3000, 3))
+    axis = np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    d, tau = np.array([0.02, -0.01, 0.005]), 0.05
+    ts = np.arange(-0.1, 0.1 + 0.0025, 0.005)
+    tree = reference_tree(ref)
+    got = along_profile(tree, pts, d, axis, ts, tau)
+    dist = np.stack([tree.query(pts + d + t * axis, distance_upper_bound=tau)[0] for t in ts])
+    cost = np.minimum(dist, tau) ** 2
+    spread = cost.std(axis=0)
+    want = cost[:, spread >= np.median(spread)].mean(axis=1)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+    assert np.ptp(want) > 1e-4  # the profile has a shape to get wrong
