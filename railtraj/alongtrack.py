@@ -475,11 +475,16 @@ def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTr
       :func:`_degenerate_fit`):
       the chain can fix its alias, but not its centimetres. Of 36 such pairs fixed on 12
       simulated surveys, 9 sat more than 2 cm off and one 5.3 cm off with a claimed 1.3 cm, so
-      its sd is raised to ``max_pair_sd``. (Such pairs are ``coarse``.)
+      its sd is raised to ``max_pair_sd``, or to the spread of its windows (dropped ones
+      included) about its curve when that is more: a pair whose windows spread 8.9 cm sat
+      12 cm off (``mixed`` seed 2), 6 sd of ``max_pair_sd``. (Such pairs are ``coarse``.) The
+      chain itself still fixes and predicts from the curve's own sd: using the spread there
+      changed which pairs it fixed and doubled ``mixed`` seed 2's inter-run error.
     """
     extra = float(o.info.get("alias_profile", {}).get("step", 0.05)) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
     if _degenerate_fit(o):
-        extra += max(options.max_pair_sd**2 - sd**2, 0.0)
+        spread = float(o.info["piecewise"].get("window_spread_m", 0.0))
+        extra += max(max(options.max_pair_sd, spread) ** 2 - sd**2, 0.0)
     return extra
 
 

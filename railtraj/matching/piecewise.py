@@ -79,10 +79,20 @@ class Piecewise:
     def n_used(self) -> int:
         return int(self.windows[:, 4].sum()) if len(self.windows) else 0
 
+    def window_spread(self) -> float:
+        """RMS along-track distance (m) of every window, used or dropped, from the curve: how far
+        apart the windows were before the curve dropped the worst."""
+        if not len(self.windows):
+            return 0.0
+        u = self.windows[:, 0] - self.s_ref
+        off = (self.windows[:, 1:4] - np.vander(u, 3, increasing=True) @ self.coefs) @ self.axis
+        return float(np.sqrt(np.mean(off**2)))
+
     def summary(self) -> dict:
         """JSON-ready diagnostics for a tile pair's ``info``."""
         frame = track_frame(self.axis)
-        return {"gradient_mm_per_m": (frame @ self.gradient * 1000).round(3).tolist(),
+        return {"window_spread_m": self.window_spread(),
+                "gradient_mm_per_m": (frame @ self.gradient * 1000).round(3).tolist(),
                 "curvature_mm_per_m2": (frame @ self.coefs[2] * 1000).round(4).tolist(),
                 "window_resid_sd_mm": (self.resid_sd * 1000).round(2).tolist(),
                 "windows": np.round(self.windows, 4).tolist(), "windows_used": self.n_used,

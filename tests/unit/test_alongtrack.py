@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.data import Ties, TileOffset, Trajectory
@@ -203,6 +204,21 @@ def test_an_ambiguous_pair_with_a_degenerate_fit_fixed_by_the_chain_is_coarse_no
     assert out[7].status == "coarse" and out[7].cov[0, 0] >= 0.02**2 * 0.999
     plain, _ = resolve_along_track(_chain({}, statuses={0: "ok", 3: "ok", 6: "ok"})[0], trajs, AlongTrackOptions())
     assert plain[7].status == "ok"
+
+
+@pytest.mark.parametrize("spread, sd", [(0.06, 0.06), (0.01, 0.02)])
+def test_a_degenerate_pair_is_placed_to_its_windows_spread_or_max_pair_sd(spread, sd):
+    """Three windows agreeing to 1 cm, two others 10 cm away: the curve through the three claims
+    8 mm; the spread of all five is the fixed pair's sd when it exceeds max_pair_sd."""
+    offsets, trajs, s = _chain({8: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})
+    pw = dict(offsets[8].info["piecewise"], window_spread_m=spread)
+    offsets[8] = replace(offsets[8], info=dict(offsets[8].info, piecewise=pw))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[8].status == "coarse" and abs(out[8].d[0] - _true_along(s[8:9])[0]) < 0.02
+    assert np.sqrt(out[8].cov[0, 0]) == pytest.approx(np.hypot(sd, 0.05 / np.sqrt(12)), rel=1e-6)  # + profile step
+    plain, _ = resolve_along_track(_chain({8: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})[0],
+                                   trajs, AlongTrackOptions())
+    assert [o.status for o in plain] == [o.status for o in out]  # the chain decides alike
 
 
 def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_put_it():

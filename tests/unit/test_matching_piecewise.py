@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from railtraj.matching.piecewise import (
+    Piecewise,
     along_profile,
     fit_curve,
     piecewise_fit,
@@ -105,3 +106,14 @@ def test_along_profile_equals_a_nearest_neighbour_query_per_shift(seed):
     want = cost[:, spread >= np.median(spread)].mean(axis=1)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
     assert np.ptp(want) > 1e-4  # the profile has a shape to get wrong
+
+
+def test_window_spread_counts_the_windows_the_curve_dropped():
+    s = np.array([-10.0, -5.0, 0.0, 5.0, 10.0])
+    coefs = np.array([[0.3, 0.1, 0.0], [0.002, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    d = np.vander(s, 3, increasing=True) @ coefs
+    d[1, 0] += 0.10  # dropped: 10 cm along the track off the curve
+    windows = np.column_stack([s, d, [1, 0, 1, 1, 1]])
+    fit = Piecewise(coefs, AXIS, np.zeros(3), 0.0, np.eye(3) * 1e-4, windows, (-10.0, 10.0), np.full(3, 0.01))
+    assert fit.window_spread() == pytest.approx(0.10 / np.sqrt(5), rel=1e-9)
+    assert fit.summary()["window_spread_m"] == fit.window_spread()
