@@ -67,8 +67,11 @@ class Piecewise:
     def at(self, xyz: np.ndarray) -> np.ndarray:
         """The offset at each of the points ``xyz`` (n, 3); beyond :attr:`span` the offset at
         its nearer end (a parabola must not be extrapolated)."""
-        s = np.clip((np.asarray(xyz, float) - self.origin) @ self.axis, *self.span)
-        return np.vander(s - self.s_ref, 3, increasing=True) @ self.coefs
+        return self._along(np.clip((np.asarray(xyz, float) - self.origin) @ self.axis, *self.span))
+
+    def _along(self, s: np.ndarray) -> np.ndarray:
+        """The offset at along-track positions ``s`` (from :attr:`origin`), not clipped to the span."""
+        return np.vander(np.asarray(s, float) - self.s_ref, 3, increasing=True) @ self.coefs
 
     def covers(self, xyz: np.ndarray) -> np.ndarray:
         """Mask of the points ``xyz`` within :attr:`span` along the track."""
@@ -84,8 +87,7 @@ class Piecewise:
         apart the windows were before the curve dropped the worst."""
         if not len(self.windows):
             return 0.0
-        u = self.windows[:, 0] - self.s_ref
-        off = (self.windows[:, 1:4] - np.vander(u, 3, increasing=True) @ self.coefs) @ self.axis
+        off = (self.windows[:, 1:4] - self._along(self.windows[:, 0])) @ self.axis
         return float(np.sqrt(np.mean(off**2)))
 
     def summary(self) -> dict:
