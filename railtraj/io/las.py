@@ -172,7 +172,7 @@ def _new_header(path: Path, tile: PointTile, scales, offsets,
     else:
         hdr = laspy.LasHeader(point_format=6, version="1.4")
         if offsets is None:
-            offsets = np.floor(tile.xyz.min(axis=0)) if len(tile) else np.zeros(3)
+            offsets = np.floor(tile.bounds[0]) if len(tile) else np.zeros(3)
     hdr.scales = np.asarray(scales, dtype=np.float64)
     hdr.offsets = np.asarray(offsets, dtype=np.float64)
     if "gps_time" not in hdr.point_format.dimension_names:

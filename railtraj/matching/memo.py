@@ -26,12 +26,14 @@ class ArrayMemo:
         self._entries: list[tuple[weakref.ref, tuple, Any]] = []
         self.builds = 0
 
-    def __call__(self, xyz: np.ndarray, *args) -> Any:
+    def __call__(self, xyz: np.ndarray, *args, **inputs) -> Any:
+        """``inputs`` go to ``build`` but are neither part of the key nor kept: what follows from
+        ``xyz`` itself (the tile that holds it)."""
         for k, (ref, key, value) in enumerate(self._entries):
             if ref() is xyz and key == args:
                 self._entries.insert(0, self._entries.pop(k))
                 return value
-        value = self.build(xyz, *args)
+        value = self.build(xyz, *args, **inputs)
         self.builds += 1
         ref = weakref.ref(xyz)
         self._entries.insert(0, (ref, args, value))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from railtraj.data import extent
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.neighbours import smallest_eigen
 from railtraj.matching.threads import query_workers
@@ -112,7 +113,7 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
     from <1 mm to ~5 mm on a dense simulated tile.
     """
     xyz = np.asarray(xyz, float)
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    lo, hi = extent(xyz)
     grid = voxelize(xyz, voxel)
     n, mean, cov = block_covariance(xyz, grid)
     evals, normal = smallest_eigen(cov)

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from railtraj.data import extent
+
 
 @dataclass(frozen=True)
 class VoxelGrid:
@@ -47,7 +49,7 @@ def voxelize(xyz: np.ndarray, size: float, origin: np.ndarray | None = None) -> 
     xyz = np.asarray(xyz, dtype=float)
     n = len(xyz)
     if origin is None:
-        origin = xyz.min(axis=0) - size if n else np.zeros(3)
+        origin = extent(xyz)[0] - size if n else np.zeros(3)
     if size <= 0 or n == 0:
         keys = np.arange(n, dtype=np.int64)
         return VoxelGrid(size, xyz.copy(), np.ones(n, np.int64), keys.copy(), keys, np.asarray(origin))

@@ -33,3 +33,15 @@ def test_radius_scale_grows_only_beyond_the_design_spacing():
 def test_too_few_points_say_nothing():
     tile = _profiles(0.04)
     assert np.isnan(profile_spacing(tile.subset(np.arange(10))))
+
+
+def test_a_tile_is_measured_once_while_its_points_are_alive():
+    from railtraj.matching import spacing
+
+    tile, other = _profiles(0.04), _profiles(0.08)
+    before = spacing._spacings.builds
+    assert spacing.tile_spacing(tile) == profile_spacing(tile)
+    radius_scale(tile)
+    radius_scale(tile, other)
+    assert spacing._spacings.builds - before == 2  # tile once, other once
+    assert radius_scale(tile, other)[1] == pytest.approx(0.08, rel=0.1)
