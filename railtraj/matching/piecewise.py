@@ -142,8 +142,14 @@ def reference_tree(xyz: np.ndarray) -> cKDTree:
     return _trees(xyz, 32)
 
 
+def along_coordinates(tree: cKDTree, axis: np.ndarray) -> np.ndarray:
+    """Along-track coordinate of each of the tree's points, about its first point: projected
+    once per fit for :func:`along_profile`, not once per pair of points it finds."""
+    return (tree.data - tree.data[0]) @ axis
+
+
 def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
-                  tau: float) -> np.ndarray:
+                  tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
     """Mean truncated squared distance to the reference points of ``pts + d + t axis`` per t.
 
     Only the half of the points whose distance changes most over ``ts`` count: points on plain
@@ -153,17 +159,22 @@ def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarra
     ``tau`` around the segment the point slides along, so those neighbours are found once (one
     pair search, then the cylinder) and each shift's distances follow from their along-track
     and squared distances; the same costs as a nearest-neighbour query per shift (to 1e-17 m^2),
-    at a third of the time (a quarter of the demo's matching was these queries).
+    at a third of the time (a quarter of the demo's matching was these queries). The squared
+    distances are the pair search's own, and the along-track ones differences of
+    ``tree_along`` (:func:`along_coordinates`): gathering each pair's two points took as long
+    as the search itself (15 M pairs on a thesis-density tile pair).
     """
     moved = pts + d
     reach = tau + float(np.abs(ts).max())
     pairs = _pair_search_tree(moved, 4).sparse_distance_matrix(tree, reach, output_type="ndarray")
-    diff = tree.data[pairs["j"]] - moved[pairs["i"]]
-    along = diff @ axis
-    nn2 = np.einsum("ij,ij->i", diff, diff)
+    tree_along = along_coordinates(tree, axis) if tree_along is None else tree_along
+    owner = pairs["i"]
+    along = tree_along[pairs["j"]] - ((moved - tree.data[0]) @ axis)[owner]
+    nn2 = pairs["v"] ** 2
     near = nn2 - along**2 <= tau * tau  # inside the cylinder: within tau of some shifted position
-    owner, along, nn2 = pairs["i"][near], along[near], nn2[near]
-    order = np.argsort(owner, kind="stable")
+    owner, along, nn2 = owner[near], along[near], nn2[near]
+    # a stable sort of 16-bit owners is a radix sort (a window holds a few thousand points)
+    order = np.argsort(owner.astype(np.int16) if len(pts) < 2**15 else owner, kind="stable")
     owner, along, nn2 = owner[order], along[order], nn2[order]
     cost = np.full((len(ts), len(pts)), tau * tau)
     if len(owner):
@@ -209,6 +220,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if _filled(s, core, min_points) > _filled(s, edges, min_points):
             edges = core
     ts = np.arange(-search, search + step / 2, step)
+    tree_along = along_coordinates(tree, axis)
     rows = []
     for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):  # a handful of windows
         inside = (s >= lo) & (s <= hi)
@@ -218,7 +230,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             continue
-        t = profile_minimum(ts, along_profile(tree, pts, fit.d, axis, ts, tau))
+        t = profile_minimum(ts, along_profile(tree, pts, fit.d, axis, ts, tau, tree_along))
         if np.isfinite(t):
             rows.append([float(s[inside].mean()), *(fit.d + t * axis)])
     return np.array(rows).reshape(-1, 4)
