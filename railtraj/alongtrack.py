@@ -32,6 +32,7 @@ demoted, never kept on a possible alias. A pair the matcher checked with too few
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -106,6 +107,9 @@ class Pair:
     # wherever its handful of votes pointed, its curve's slope counts only once its alias is
     # fixed (one such pair's -1 mm/m among its neighbours' +2..+11 bent the chain by 0.2 m)
     rate_trusted: bool = True
+    # (k,) whether the chain may fix each candidate: the matcher's own fit, or a peak that stands
+    # out within a period too (see _candidates); the others only compete
+    movable: np.ndarray | None = None
 
 
 def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Trajectory],
@@ -208,7 +212,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     if not np.isfinite(times).all() or o.run_b not in trajectories or o.run_a not in trajectories:
         return None
     # scipy.signal takes ~1 s to import: not at `railtraj --help`
-    from scipy.signal import find_peaks
+    from scipy.signal import find_peaks, peak_prominences
 
     fitness = np.asarray(prof["fitness"], float)
     if not len(fitness) or fitness.max() < options.min_fitness:
@@ -220,19 +224,34 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # fitness is a share of the profile's points: binomial noise)
     peaks, props = find_peaks(fitness, prominence=0.0)  # (a peak on the window's edge is no peak)
     n_points = float(prof.get("points", 2000))
-    dip = np.maximum(1.0 - (fitness[peaks] - props["prominences"]), 0.0)
-    noise = np.sqrt((misfit[peaks] + dip) / n_points)
-    peaks = peaks[props["prominences"] >= options.min_significance * noise]
-    peaks = peaks[misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()] if len(peaks) else peaks
+    significant = props["prominences"] >= options.min_significance * _counting_noise(
+        fitness, peaks, props["prominences"], n_points)
+    # ... and another alias than the matcher's own fit is one to move to only if it also stands
+    # out against the dips within min_period either side (aliases lie a period apart, so a
+    # real one falls off within a period). Against the whole window, the top sample of a flat
+    # profile rose over the falls at the window's ends, and the chain moved a ring-jointed
+    # tube's pair 1.00 m onto it: 21 cm off, claiming 1.6 cm. Such a peak still competes (a
+    # rival that keeps a pair from being fixed): dropped, it let the chain fix a demo pair 24 cm off
+    within = 2 * int(np.ceil(options.min_period / prof["step"])) + 1
+    with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
+        warnings.simplefilter("ignore", RuntimeWarning)
+        local = peak_prominences(fitness, peaks, wlen=within)[0]
+    movable = (np.abs(ts[peaks]) < 0.25 * options.min_period) | (
+        local >= options.min_significance * _counting_noise(fitness, peaks, local, n_points))
+    peaks, movable = peaks[significant], movable[significant]
+    if len(peaks):
+        keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
+        peaks, movable = peaks[keep], movable[keep]
     if not len(peaks):
         return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
-    peaks = peaks[np.argsort(misfit[peaks])][: options.max_candidates]
+    order = np.argsort(misfit[peaks])[: options.max_candidates]
+    peaks, movable = peaks[order], movable[order]
     shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
     # a peak closer to the matcher's own fit than a quarter period is that fit (its windows
     # place it better than the profile's 5 cm steps)
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
     shift, first = np.unique(shift, return_index=True)
-    peaks = peaks[first]
+    peaks, movable = peaks[first], movable[first] | (shift == 0.0)
     m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
@@ -246,7 +265,14 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
-                rate_trusted="few_votes" not in o.info or _periodic(shift, options.min_period))
+                rate_trusted="few_votes" not in o.info or _periodic(shift, options.min_period), movable=movable)
+
+
+def _counting_noise(fitness: np.ndarray, peaks: np.ndarray, prominence: np.ndarray, n_points: float) -> np.ndarray:
+    """sd of a peak's rise above its dip: the fitness is a share of the profile's points
+    (binomial noise), counted at the peak and at the dip."""
+    dip = np.maximum(1.0 - (fitness[peaks] - prominence), 0.0)
+    return np.sqrt((np.maximum(1.0 - fitness[peaks], 1e-3) + dip) / n_points)
 
 
 def _periodic(shift: np.ndarray, min_period: float) -> bool:
@@ -323,7 +349,9 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
       was fixed next to a precise prediction (a featureless tunnel near its portal). The
       matcher's own choice counts as such a peak: a profile's only peak 16 cm from the
       windows' fit is a disagreement, not an alias (it sat 11 cm off, in the demo's circular
-      section).
+      section),
+    * and that alias stands out within a period of itself, not only against the whole window
+      (``Pair.movable``; a flat profile's top sample is no alias).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
     chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
@@ -356,7 +384,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             others = np.append(np.delete(p.shift, best), 0.0)
             crowded = p.shift[best] != 0 and bool((np.abs(others - p.shift[best]) < options.min_period).any())
             result[i] = (float(p.shift[best]), margin, "ambiguous")
-            if near and not crowded and margin >= options.min_margin:
+            movable = p.movable is None or bool(p.movable[best])
+            if near and not crowded and movable and margin >= options.min_margin:
                 newly.append((i, best, margin))
         if not newly:
             return result, mu, var

@@ -235,6 +235,29 @@ def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_
     assert "observed_at" in out[5].info
 
 
+def test_the_top_of_a_flat_noisy_profile_is_no_alias():
+    """A featureless pair's profile is flat within counting noise across the window and falls
+    only where shifted points leave the tile. Its highest sample, measured against those far
+    falls, rose 'significantly', and the chain moved a pair of a ring-jointed tube there, 21 cm
+    off with a claimed 1.6 cm. An alias is a peak above the dips within a period of it: here
+    there is none, so the pair stays unresolved."""
+    offsets, trajs, s = _chain({5: 1.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    o = offsets[5]
+    prof = o.info["alias_profile"]
+    ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+    true_t = -1.0  # the truth, from the matcher's choice
+    rng = np.random.default_rng(3)
+    noise = rng.integers(-5, 1, len(ts)) / 4000  # a few of 4000 points more or less
+    top = int(np.argmin(np.abs(ts - (true_t + 0.02))))
+    noise[top] = 2 / 4000  # the plateau's highest sample, where the chain predicts: still no alias
+    edge = np.clip(np.abs(ts - true_t) - 2.0, 0.0, None)  # beyond 2 m, points leave the tile
+    fitness = 0.998 + noise - 0.02 * edge
+    offsets[5] = replace(o, info=dict(o.info, alias_profile=dict(prof, fitness=fitness.tolist(), points=4000)))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[5].status == "ambiguous" and not out[5].info["alongtrack"]["resolved"]
+    assert all(o.status in ("ok", "coarse") for k, o in enumerate(out) if k != 5)
+
+
 def test_on_a_curve_the_rate_counts_the_turn_of_the_track():
     """A constant offset vector between two runs on a 500 m radius: its along-track component
     changes by curvature x across per metre although the pair's curve has no gradient."""
