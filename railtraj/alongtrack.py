@@ -49,7 +49,7 @@ class AlongTrackOptions:
     enabled: bool = True
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
-    rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders (its bend as white noise)
+    rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
@@ -135,7 +135,11 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     for (run_a, run_b), chain in sorted(chains.items()):
         chain.sort(key=lambda p: p.s)
         chain = _consensus_rates(chain, options)
-        verdicts, mu, var = _resolve_chain(chain, options)
+        walk = _rate_walk(chain, options)
+        if walk > options.rate_walk:
+            log.info("along-track %s~%s: the drift rate wanders %.2f mm/m per sqrt(m), measured from its pairs "
+                     "(rate_walk %.2f at least)", run_a, run_b, walk * 1e3, options.rate_walk * 1e3)
+        verdicts, mu, var = _resolve_chain(chain, replace(options, rate_walk=walk))
         for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
             o, resolved = offsets[pair.index], verdict == "resolved"
             extra = _placement_variance(o, shift, pair.sd, options)
@@ -392,6 +396,21 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
         for i, best, margin in newly:
             fixed[i] = chain[i].u[best]
             result[i] = (float(chain[i].shift[best]), margin, "resolved")
+
+
+def _rate_walk(chain: list[Pair], options: AlongTrackOptions) -> float:
+    """How fast this run pair's drift rate wanders, from its own pairs' rates (at least
+    ``rate_walk``): two rates ``ds`` apart differ by ``2 rate_sd^2 + walk^2 ds`` in the mean
+    square. Measured over the distances the chain bridges (50-150 m); the median keeps stray
+    rates out."""
+    rates = np.array([p.rate for p in chain if p.rate_trusted])
+    s = np.array([p.s for p in chain if p.rate_trusted])
+    ds = np.abs(s[None, :] - s[:, None])
+    far = np.triu((ds >= 50.0) & (ds <= 150.0), 1)
+    if far.sum() < 5:
+        return options.rate_walk
+    q = np.median(((rates[None, :] - rates[:, None]) ** 2 - 2 * options.rate_sd**2)[far] / ds[far])
+    return float(max(options.rate_walk, np.sqrt(max(q, 0.0))))
 
 
 def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair]:
