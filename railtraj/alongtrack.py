@@ -240,8 +240,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
         warnings.simplefilter("ignore", RuntimeWarning)
         local = peak_prominences(fitness, peaks, wlen=within)[0]
-    movable = (np.abs(ts[peaks]) < 0.25 * options.min_period) | (
-        local >= options.min_significance * _counting_noise(fitness, peaks, local, n_points))
+    movable = local >= options.min_significance * _counting_noise(fitness, peaks, local, n_points)
     peaks, movable = peaks[significant], movable[significant]
     if len(peaks):
         keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
@@ -255,7 +254,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # place it better than the profile's 5 cm steps)
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
     shift, first = np.unique(shift, return_index=True)
-    peaks, movable = peaks[first], movable[first] | (shift == 0.0)
+    peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
     m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
