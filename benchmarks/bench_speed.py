@@ -8,7 +8,9 @@
   written as LAZ once, then read, detected and matched in this process, twice: seconds per
   stage, first with the imports of Open3D and SciPy's modules (~1 s), then with them loaded.
 * ``demo``: the main job on the built-in demo survey (``railtraj`` with no survey_dir; generated
-  and cached first, not timed), once per executor.
+  and cached first, not timed), once per executor. An executor may carry overrides after ``+``:
+  ``serial+threads=1`` is a serial job held to one core (by default its main process threads
+  KD-tree queries, window fits and Open3D over every core).
 * ``sizes``: ``railtraj-sim <scenario> --size S`` surveys (generated once into ``--work``), the
   main job once per size and executor.
 * ``thesis``: a thesis-size survey (``mixed`` 1.33 times as long with 3500 points per profile: 3
@@ -78,7 +80,8 @@ def replica(work: Path) -> None:
 
 def job(survey: Path | None, out: Path, executor: str) -> dict:
     """Run one railtraj job; its wall time, stage seconds, peak memory and the load at its start."""
-    args = [f"out_dir={out}", f"executor={executor}", "resume=false", "anchors=false"]
+    name, *overrides = executor.split("+")  # e.g. serial+threads=1: one core
+    args = [f"out_dir={out}", f"executor={name}", *overrides, "resume=false", "anchors=false"]
     if survey is not None:
         args.insert(0, f"survey_dir={survey}")
     load = os.getloadavg()[0]
@@ -94,7 +97,7 @@ def job(survey: Path | None, out: Path, executor: str) -> dict:
 
 def row(label: str, executor: str, r: dict) -> str:
     stages = " / ".join(f"{r['seconds'].get(s, float('nan')):.1f}" for s in STAGES)
-    return (f"| {label:<22} | {executor:<7} | {r['tiles']:5d} | {r['pairs']:5d} | {r['wall']:7.1f} | {stages} | "
+    return (f"| {label:<22} | {executor:<16} | {r['tiles']:5d} | {r['pairs']:5d} | {r['wall']:7.1f} | {stages} | "
             f"{r['memory'].get('peak_sampled_gb', float('nan')):5.2f} | {r['load']:4.1f} |")
 
 
@@ -159,7 +162,7 @@ def main() -> None:
     for label, survey in jobs:
         for executor in executors:
             folder = re.sub(r"[^\w.-]+", "_", label).strip("_")  # "demo (cached)": no ( ) in a Hydra override
-            out = args.work / "out" / f"{folder}-{executor}"
+            out = args.work / "out" / f"{folder}-{executor.replace('+', '_').replace('=', '')}"
             print(row(label, executor, job(survey, out, executor)), flush=True)
 
 

@@ -79,8 +79,8 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
                           "or 0 for no limit")
     sbet_crs = resolve_sbet_crs(cfg.sbet_crs, cfg.crs)  # so does a bad sbet_crs
     if cfg.threads:
-        from railtraj.o3d import o3d
-        o3d.utility.set_max_threads(int(cfg.threads))
+        from railtraj.matching.threads import set_threads
+        set_threads(int(cfg.threads))
     truth_dir = cfg.truth_dir
     if cfg.survey_dir:
         survey_dir = Path(to_absolute_path(cfg.survey_dir))

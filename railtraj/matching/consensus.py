@@ -17,6 +17,7 @@ import numpy as np
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.refine import Fit, crop, point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
+from railtraj.matching.threads import map_threads
 from railtraj.matching.voting import Peak, Votes
 
 
@@ -29,13 +30,12 @@ class Checked:
 def check_peaks(target: PlaneTarget, moving: np.ndarray, peaks: list[Peak], *, iterations: int = 2,
                 margin: float = 0.3, fitness_radius: float = 0.05) -> list[Checked]:
     """Quick point-to-plane fit (``iterations`` steps) from every peak, with its dense fitness."""
-    out = []
-    for peak in peaks:  # a handful of peaks, each fully vectorized
-        pts = crop(target, moving, peak.d, margin)
-        fit = point_to_plane(target, pts, peak.d, iterations=iterations, max_dist=0.2,
-                             fitness_radius=fitness_radius)
-        out.append(Checked(peak, fit))
-    return out
+    def check(k: int) -> Checked:  # a handful of peaks, each fully vectorized
+        pts = crop(target, moving, peaks[k].d, margin)
+        return Checked(peaks[k], point_to_plane(target, pts, peaks[k].d, iterations=iterations, max_dist=0.2,
+                                                fitness_radius=fitness_radius))
+
+    return map_threads(check, len(peaks))
 
 
 def alias_profile(target: PlaneTarget, moving: np.ndarray, d: np.ndarray, axis: np.ndarray,

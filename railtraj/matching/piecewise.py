@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
 from railtraj.matching.memo import ArrayMemo
+from railtraj.matching.threads import map_threads
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
 
@@ -221,18 +222,19 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             edges = core
     ts = np.arange(-search, search + step / 2, step)
     tree_along = along_coordinates(tree, axis)
-    rows = []
-    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):  # a handful of windows
-        inside = (s >= lo) & (s <= hi)
+
+    def window(k: int) -> list[float] | None:
+        inside = (s >= edges[k]) & (s <= edges[k + 1])
         if inside.sum() < min_points:
-            continue
+            return None
         pts = sample(moving[inside], points, seed=k)
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
-            continue
+            return None
         t = profile_minimum(ts, along_profile(tree, pts, fit.d, axis, ts, tau, tree_along))
-        if np.isfinite(t):
-            rows.append([float(s[inside].mean()), *(fit.d + t * axis)])
+        return [float(s[inside].mean()), *(fit.d + t * axis)] if np.isfinite(t) else None
+
+    rows = [row for row in map_threads(window, len(edges) - 1) if row is not None]
     return np.array(rows).reshape(-1, 4)
 
 

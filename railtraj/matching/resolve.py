@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.consensus import (
@@ -31,6 +32,7 @@ from railtraj.matching.piecewise import (
 )
 from railtraj.matching.refine import directions, sample
 from railtraj.matching.target import cached_target
+from railtraj.matching.threads import in_background
 from railtraj.matching.voting import Votes, find_peaks, slices
 
 #: keypoint pairs agreeing with the curve needed to use them as ties (else one tie per window)
@@ -85,6 +87,9 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         info["few_votes"] = int(peaks[0].count)
 
     t1 = time.perf_counter()
+    piecewise = refiner is not None and s.window_length > 0
+    # run a's KD-tree for the window profiles, built on another core while its plane target is
+    tree = in_background(reference_tree, tile_a.xyz) if piecewise else None
     target = cached_target(tile_a.xyz, s.target_voxel)
     moving = sample(tile_b.xyz, s.check_points, seed=1)
     checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
@@ -100,8 +105,8 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     if chosen.fit.fitness < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
         return failed(tile_a, tile_b, "no_consensus" if few_votes else "no_overlap", info, chosen.fit.d,
                       inliers=chosen.peak.count)
-    if refiner is not None and s.window_length > 0:
-        return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, few_votes)
+    if piecewise:
+        return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, tree(), few_votes)
     if rival >= s.ambiguity_ratio:
         return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
@@ -116,7 +121,7 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
 
 
 def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info,
-                        few_votes: bool = False) -> TileOffset:
+                        tree: cKDTree, few_votes: bool = False) -> TileOffset:
     """Refine as a curve of offsets along the track (:mod:`railtraj.matching.piecewise`), then
     judge it: ``ambiguous`` if an along-track alias of the curve fits nearly as well,
     ``degenerate`` if the offset's sd exceeds ``max_sd`` in any direction or fewer than
@@ -126,7 +131,6 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ``ok`` here: its alias is left to the chain along the track."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
-    tree = reference_tree(tile_a.xyz)  # run a's raw points, for the along-track profiles of every fit
 
     def fit_from(start: np.ndarray):
         inside = target.inside(tile_b.xyz + start, 0.3)

@@ -7,6 +7,8 @@ must, at every point of the overlap.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -117,3 +119,30 @@ def test_window_spread_counts_the_windows_the_curve_dropped():
     fit = Piecewise(coefs, AXIS, np.zeros(3), 0.0, np.eye(3) * 1e-4, windows, (-10.0, 10.0), np.full(3, 0.01))
     assert fit.window_spread() == pytest.approx(0.10 / np.sqrt(5), rel=1e-9)
     assert fit.summary()["window_spread_m"] == fit.window_spread()
+
+
+def test_windows_fitted_in_threads_equal_those_fitted_on_one_thread(stretched, monkeypatch):
+    from railtraj.matching import threads
+
+    a, b, true_d = stretched
+    target = build_target(a.xyz)
+    start = true_d.mean(axis=0)
+    inside = target.inside(b.xyz + start, 0.3)
+    fitted_on, map_threads = set(), threads.map_threads
+
+    def recording(fn, n):  # notes which threads fit the windows
+        def window(k):
+            fitted_on.add(threading.get_ident())
+            return fn(k)
+        return map_threads(window, n)
+
+    monkeypatch.setattr("railtraj.matching.piecewise.map_threads", recording)
+    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
+    fits = {}
+    for n in (1, 0):  # threads=1, then every core
+        fitted_on.clear()
+        threads.set_threads(n)
+        fits[n] = piecewise_fit(target, a.xyz, b.xyz[inside], start, length=5.0)
+        assert (fitted_on == {threading.get_ident()}) == (n == 1)
+    np.testing.assert_array_equal(fits[0].windows, fits[1].windows)
+    np.testing.assert_array_equal(fits[0].cov, fits[1].cov)
