@@ -34,9 +34,9 @@ from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
 from railtraj.matching.memo import ArrayMemo
-from railtraj.matching.threads import map_threads
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
+from railtraj.matching.threads import map_threads
 
 #: per-window sd floors (m) along, across, up: what a window estimate scatters by at best
 WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])

@@ -89,7 +89,6 @@ def single_threaded_worker() -> None:
         return
     from threadpoolctl import threadpool_limits
 
-    from railtraj.o3d import o3d
 
     set_threads(1)
     threadpool_limits(limits=1, user_api="blas")
