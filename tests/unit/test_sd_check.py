@@ -131,3 +131,15 @@ def test_one_wrong_tile_pair_convicts_nobody():
     trajs, offsets, _ = _survey(biased=False, alias_at=200.0)
     checked = check_reported_sd(trajs, offsets)
     assert not checked.widening and not checked.summary["runs"]
+
+
+def test_a_biased_reference_run_is_blamed_alone_where_its_tile_pairs_are_apart(monkeypatch):
+    """The global pipeline pairs every run with the reference only. Its bias shows against run b
+    in one tile pair and against run c in another 26 m further on, beyond one reach: run b must
+    not be blamed for a disagreement that run a has with both runs along that stretch."""
+    monkeypatch.setattr(f"{__name__}.TRAP", (100.0, 220.0))
+    trajs, offsets, ties = _survey()
+    star = [o for o in offsets if (o.run_a, o.run_b, o.tile_a) in {("run_a", "run_b", "125"), ("run_a", "run_c", "175")}]
+    summary = check_reported_sd(trajs, star).summary
+    assert set(summary["runs"]) == {"run_a"}
+    assert summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
