@@ -41,20 +41,19 @@ def set_threads(n: int) -> None:
     o3d.utility.set_max_threads(max(_threads, 0))
 
 
-def set_query_threads(on: bool) -> None:
-    """Let large KD-tree queries and window fits of this process use every core, or not."""
-    global _threads
-    _threads = -1 if on else 1
-
-
 def query_workers(n: int) -> int:
     """``workers`` for a KD-tree query of ``n`` points (results do not depend on it)."""
     return _threads if n >= MIN_THREADED_QUERY else 1
 
 
+def _cores() -> int:
+    """How many cores this process may use."""
+    return (os.cpu_count() or 1) if _threads == -1 else _threads
+
+
 def map_threads(fn, n: int) -> list:
     """``[fn(k) for k in range(n)]``, in threads (one per core) unless this process is held to one."""
-    workers = min(n, os.cpu_count() or 1) if _threads == -1 else min(n, _threads)
+    workers = min(n, _cores())
     if workers < 2:
         return [fn(k) for k in range(n)]
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -64,7 +63,7 @@ def map_threads(fn, n: int) -> list:
 def in_background(fn, *args):
     """Start ``fn(*args)`` on another thread unless this process is held to one core; returns a
     function that waits for its result (or, held to one core, computes it then)."""
-    if _threads == 1 or (os.cpu_count() or 1) < 2:
+    if _cores() < 2:
         return lambda: fn(*args)
     pool = ThreadPoolExecutor(max_workers=1)
     future = pool.submit(fn, *args)
@@ -88,7 +87,6 @@ def single_threaded_worker() -> None:
     if _worker_ready:
         return
     from threadpoolctl import threadpool_limits
-
 
     set_threads(1)
     threadpool_limits(limits=1, user_api="blas")
