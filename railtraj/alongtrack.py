@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from railtraj.data import Ties, TileOffset, Trajectory
+from railtraj.track_direction import on_travel_direction
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     report row per candidate pair."""
     if not options.enabled:
         return [_unless_few_votes(o) for o in offsets], []
+    offsets = [on_travel_direction(o, trajectories) for o in offsets]
     out, report = list(offsets), []
     chains: dict[tuple[str, str], list[Pair]] = {}
     travelled = {r: _travelled(t) for r, t in trajectories.items()}
