@@ -257,6 +257,8 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
     shift, first = np.unique(shift, return_index=True)
     peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
+    if _unchecked_fit(o):
+        movable = np.zeros_like(movable)
     m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
@@ -543,6 +545,16 @@ def _degenerate_fit(o: TileOffset) -> bool:
     chain became ``ok``: in session 10's trial of a wider reference, 3 of 5 windows agreeing to
     1 cm, 10 cm from the other two (a featureless section), gave an ``ok`` pair 6.2 cm off."""
     return o.status == "degenerate" or bool(o.info.get("degenerate_fit", False))
+
+
+def _unchecked_fit(o: TileOffset) -> bool:
+    """Whether the pair's curve is degenerate and rests on 1-2 windows: a constant or a line
+    through them fits them exactly, so nothing measures how far its along-track value may be
+    off, and its sd (``max_pair_sd`` at least, :func:`_placement_variance`) is a guess. With
+    2 cm range noise one such pair, fixed on its own fit, sat 11.8 cm off claiming 2.0 cm.
+    The chain does not fix it: it is observed where the chain predicts, across and up only."""
+    windows = o.info["piecewise"].get("windows")
+    return _degenerate_fit(o) and windows is not None and len(windows) <= 2
 
 
 def _unless_few_votes(o: TileOffset) -> TileOffset:

@@ -222,6 +222,28 @@ def test_a_degenerate_pair_is_placed_to_its_windows_spread_or_max_pair_sd(spread
     assert [o.status for o in plain] == [o.status for o in out]  # the chain decides alike
 
 
+@pytest.mark.parametrize("n_windows, fixed", [(1, False), (2, False), (3, True)])
+def test_a_degenerate_pair_on_one_or_two_windows_is_not_fixed(n_windows, fixed):
+    """A constant or a line through 1-2 windows fits them exactly: nothing says how far off its
+    along-track value is (one such pair sat 11.8 cm off claiming 2 cm), so the chain leaves it
+    weak, observed where it predicts, even where its value agrees; with 3 windows their scatter
+    is measured and it is fixed."""
+    offsets, trajs, s = _chain({}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})
+    o = offsets[8]
+    windows = [[float(k), *o.d.tolist(), 1.0] for k in range(n_windows)]
+    offsets[8] = replace(o, info=dict(o.info, piecewise=dict(o.info["piecewise"], windows=windows)))
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    if fixed:
+        assert out[8].status == "coarse"
+        return
+    row = next(r for r in report if r["tile_a"] == o.tile_a)
+    assert out[8].status == "degenerate" and row["verdict"] != "resolved"
+    assert "observed_at" in out[8].info
+    assert [o.status for k, o in enumerate(out) if k != 8] == \
+        [o.status for k, o in enumerate(resolve_along_track(_chain({}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})[0],
+                                                            trajs, AlongTrackOptions())[0]) if k != 8]
+
+
 def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_put_it():
     """A flat profile gives no chain prediction: the pair's across and up are observed at the
     place the input trajectories agree on, not at the matcher's alias 3 m away."""
