@@ -48,6 +48,7 @@ from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd
+from railtraj.track_direction import fitted_direction_note
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +181,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories)
     notes = survey_notes + notes
+    if options.alongtrack.enabled:
+        notes += [n for n in [fitted_direction_note(resolved)] if n]
     clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

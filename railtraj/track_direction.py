@@ -13,11 +13,14 @@ degree, grade included.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 import numpy as np
 
 from railtraj.data import TileOffset, Trajectory
+
+log = logging.getLogger(__name__)
 
 #: half the time span (s) over which the direction of travel is taken
 HALF_SPAN_S = 0.25
@@ -66,4 +69,18 @@ def on_travel_direction(o: TileOffset, trajectories: dict[str, Trajectory]) -> T
     return replace(o, cov=cov, info=info)
 
 
-__all__ = ["on_travel_direction", "rotation_between", "travel_direction"]
+def fitted_direction_note(offsets: list[TileOffset]) -> str | None:
+    """A note (and a warning) when some pairs kept the matcher's fitted direction because their
+    run a's trajectory did not give one there (the train stood still)."""
+    kept = [o for o in offsets if "axis" in o.info.get("piecewise", {}) and "fitted_axis" not in o.info["piecewise"]
+            and np.isfinite(o.info.get("time_a", np.nan))]
+    if not kept:
+        return None
+    note = (f"{len(kept)} tile pair(s) keep the track direction of their point-to-plane fit (e.g. {kept[0].tile_a} "
+            f"{kept[0].run_a}~{kept[0].run_b}): run a's trajectory shows no motion there; with noisy points that "
+            "direction can be a degree or two off, so their along-track uncertainty leans across the track")
+    log.warning(note)
+    return note
+
+
+__all__ = ["fitted_direction_note", "on_travel_direction", "rotation_between", "travel_direction"]

@@ -7,7 +7,7 @@ import numpy as np
 from railtraj.adjust.offsets import offset_covariance
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.data import Ties, TileOffset, Trajectory
-from railtraj.track_direction import on_travel_direction, rotation_between
+from railtraj.track_direction import fitted_direction_note, on_travel_direction, rotation_between
 
 HEADING = np.radians(35.0)  # a tunnel crossing the tiles diagonally
 GRADE = 0.02  # 2 % down-grade: 20 mm a metre
@@ -85,3 +85,15 @@ def test_rotation_between_takes_one_direction_onto_the_other():
     R = rotation_between(u, v)
     assert np.allclose(R @ u, v)
     assert np.allclose(R @ R.T, np.eye(3))
+
+
+def test_a_pair_where_the_train_stood_still_keeps_its_fitted_axis_and_says_so():
+    standing = _run("run_a", 300000.0)
+    standing = Trajectory(standing.time, np.repeat(standing.xyz[:1], len(standing.time), axis=0), standing.rpy,
+                          standing.sd, run_id="run_a")
+    o, _ = _aliased_pair(fitted_off_deg=1.5)
+    kept = on_travel_direction(o, {"run_a": standing})
+    assert kept is o
+    note = fitted_direction_note([kept, on_travel_direction(o, {"run_a": _run("run_a", 300000.0)})])
+    assert note is not None and note.startswith("1 tile pair(s) keep")
+    assert fitted_direction_note([on_travel_direction(o, {"run_a": _run("run_a", 300000.0)})]) is None
