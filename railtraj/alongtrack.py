@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from railtraj.data import Ties, TileOffset, Trajectory
-from railtraj.track_direction import on_travel_direction
+from railtraj.track_direction import HALF_SPAN_S, on_travel_direction, travel_step
 
 log = logging.getLogger(__name__)
 
@@ -652,8 +652,8 @@ def _at_predicted(o: TileOffset, u0: float, along: float, mu: float, var: float,
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:
     """Horizontal velocity (m/s) at time ``t``, over half a second."""
-    xyz = traj.position_at(np.clip([t - 0.25, t + 0.25], *traj.span))
-    v = (xyz[1] - xyz[0]) / 0.5
+    move, _ = travel_step(traj, t)
+    v = move / (2 * HALF_SPAN_S)
     v[2] = 0.0
     return v
 

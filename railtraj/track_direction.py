@@ -28,15 +28,20 @@ HALF_SPAN_S = 0.25
 MIN_SPEED = 0.5
 
 
+def travel_step(traj: Trajectory, t: float) -> tuple[np.ndarray, float]:
+    """How far (3-D, m) ``traj`` moves over ``HALF_SPAN_S`` either side of ``t``, and in how many
+    seconds (less at the ends of its span)."""
+    lo, hi = np.clip([t - HALF_SPAN_S, t + HALF_SPAN_S], *traj.span)
+    xyz = traj.position_at(np.array([lo, hi]))
+    return xyz[1] - xyz[0], float(hi - lo)
+
+
 def travel_direction(traj: Trajectory, t: float) -> np.ndarray | None:
     """Unit 3-D direction of travel of ``traj`` at time ``t`` (None when it barely moves)."""
-    lo, hi = np.clip([t - HALF_SPAN_S, t + HALF_SPAN_S], *traj.span)
-    if hi - lo <= 0:
+    move, seconds = travel_step(traj, t)
+    if seconds <= 0 or np.linalg.norm(move) < MIN_SPEED * seconds:
         return None
-    step = traj.position_at(np.array([lo, hi]))
-    move = step[1] - step[0]
-    speed = np.linalg.norm(move) / (hi - lo)
-    return move / np.linalg.norm(move) if speed >= MIN_SPEED else None
+    return move / np.linalg.norm(move)
 
 
 def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -83,4 +88,4 @@ def fitted_direction_note(offsets: list[TileOffset]) -> str | None:
     return note
 
 
-__all__ = ["fitted_direction_note", "on_travel_direction", "rotation_between", "travel_direction"]
+__all__ = ["fitted_direction_note", "on_travel_direction", "rotation_between", "travel_direction", "travel_step"]
