@@ -75,9 +75,16 @@ class Piecewise:
         return np.vander(np.asarray(s, float) - self.s_ref, 3, increasing=True) @ self.coefs
 
     def covers(self, xyz: np.ndarray) -> np.ndarray:
-        """Mask of the points ``xyz`` within :attr:`span` along the track."""
+        """Mask of the points ``xyz`` between the centres of the outermost used windows along
+        the track: where the curve interpolates what it was fitted on. Beyond them it
+        extrapolates, and a parabola's sd grows fast there (2.5x its sd at the reference point
+        half a window past the last centre). On held-out portal_trap 91 a tie 2.4 m past the
+        last used window was 3.7 cm off where its pair claimed 0.7 cm."""
         s = (np.asarray(xyz, float) - self.origin) @ self.axis
-        return (s >= self.span[0]) & (s <= self.span[1])
+        centres = self.windows[self.windows[:, 4] > 0, 0]
+        if not len(centres):
+            return np.zeros(len(s), bool)
+        return (s >= centres.min()) & (s <= centres.max())
 
     @property
     def n_used(self) -> int:

@@ -159,7 +159,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     info.update(rival_misfit_ratio=rival, piecewise=fit.summary(), weak_sd=float(sd[-1]), fitness=chosen.fit.fitness,
                 information=directions(np.linalg.inv(fit.cov)))
     ia, ib = consensus(votes, fit.at(kp_b.xyz[votes.ib]), s.inlier_radius)
-    keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve was fitted
+    keep = fit.covers(kp_b.xyz[ib])  # ties only where the curve interpolates its windows
     ia, ib = ia[keep], ib[keep]
     degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
     info["degenerate_fit"] = degenerate  # also when ambiguous: should the chain fix it, it is coarse

@@ -146,3 +146,25 @@ def test_windows_fitted_in_threads_equal_those_fitted_on_one_thread(stretched, m
         assert (fitted_on == {threading.get_ident()}) == (n == 1)
     np.testing.assert_array_equal(fits[0].windows, fits[1].windows)
     np.testing.assert_array_equal(fits[0].cov, fits[1].cov)
+
+
+def test_ties_are_kept_only_where_the_curve_interpolates_its_windows():
+    """A parabola through four 1 cm windows is known to 0.7 cm between them but to 1.7 cm half
+    a window past the last one (the held-out portal_trap 91 pair: a tie there 3.7 cm off). With
+    the end window dropped, points past the last used window's centre are not covered."""
+    s = np.arange(-12.5, 12.6, 5.0)
+    coefs = np.array([[0.3, -0.2, 0.05], [0.02, -0.004, 0.001], [0.0, 0.0, 0.0]])
+    d = np.vander(s, 3, increasing=True) @ coefs
+    d[-1, 0] += 0.2  # the last window off the curve: dropped
+    got, cov, used, sd = fit_curve(np.column_stack([s, d]), AXIS, 0.0)
+    assert used.tolist() == [True, True, True, True, True, False]
+    windows = np.column_stack([s, d, used])
+    fit = Piecewise(got, AXIS, np.zeros(3), 0.0, cov, windows, (-15.0, 10.0), sd)
+    along = np.array([-15.0, -12.5, 0.0, 7.5, 7.6, 10.0])
+    covered = fit.covers(np.column_stack([along, np.zeros((6, 2))]))
+    assert covered.tolist() == [False, True, True, True, False, False]
+    # and the spread of a parabola's value grows past the windows it was fitted on
+    G = np.vander(s[used], 3, increasing=True)
+    M = np.linalg.inv(G.T @ G)
+    var = [np.vander([x], 3, increasing=True)[0] @ M @ np.vander([x], 3, increasing=True)[0] for x in (0.0, 7.5, 10.0)]
+    assert var[0] < var[1] < var[2] and var[2] > 1.8 * var[1]
