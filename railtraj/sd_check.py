@@ -35,6 +35,11 @@ log = logging.getLogger(__name__)
 class SdCheckOptions:
     enabled: bool = True
     max_z: float = 5.0         # disagreement (in sd of the reported sds and the observation) that convicts
+    # ... where both runs report GNSS-quality sd (horizontal <= gnss_sd_m): there the sd is a GNSS
+    # solution's, not an INS drift model's (which may understate a tunnel's drift twofold), and a
+    # multipath bias shows as a smaller multiple of it
+    max_z_gnss: float = 3.5
+    gnss_sd_m: float = 0.10
     reach_m: float = 25.0      # metres of the blamed run around a disagreement whose sd is raised
     tie_sd_m: float = 0.01     # sd of one tie, per axis (as the spline optimizer's tie_sigma_m)
     max_weak_sd_m: float = 0.3  # directions of an offset with larger sd are not compared (as the optimizer's)
@@ -75,8 +80,10 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
     z, d = _z(trajectories, obs, options.max_weak_sd_m)
+    gnss = np.maximum(_horizontal_sd(trajectories, obs.run_a, obs.time_a),
+                      _horizontal_sd(trajectories, obs.run_b, obs.time_b)) <= options.gnss_sd_m
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
-    bad = _corroborated(obs, z > options.max_z, 2 * options.reach_m)
+    bad = _corroborated(obs, z > np.where(gnss, options.max_z_gnss, options.max_z), 2 * options.reach_m)
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
     runs = sorted(set(obs.run_a) | set(obs.run_b))
     # ... and so is a run's disagreement with several others: the global pipeline pairs every
@@ -163,6 +170,16 @@ def _z(trajectories: dict[str, Trajectory], obs: _Observations, max_weak_sd_m: f
     var = np.einsum("nik,nkl,njl->nij", project, var, project) + (np.eye(3) - project)
     z = np.sqrt(np.einsum("ni,ni->n", d, np.linalg.solve(var, d[..., None])[..., 0]))
     return np.where(known, z, 0.0), d
+
+
+def _horizontal_sd(trajectories: dict[str, Trajectory], runs: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Each observation's run's reported horizontal sd at its time (infinite where none is reported)."""
+    out = np.full(len(runs), np.inf)
+    for run, traj in trajectories.items():
+        m = runs == run
+        if m.any() and traj.sd is not None:
+            out[m] = np.linalg.norm(traj.sd_at(times[m])[:, :2], axis=1)
+    return out
 
 
 def _blamed(run: str, runs: list[str], obs: _Observations, at_odds: dict[str, np.ndarray]) -> np.ndarray:
