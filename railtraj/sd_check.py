@@ -80,8 +80,9 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
     z, d = _z(trajectories, obs, options.max_weak_sd_m)
-    gnss = np.maximum(_horizontal_sd(trajectories, obs.run_a, obs.time_a),
-                      _horizontal_sd(trajectories, obs.run_b, obs.time_b)) <= options.gnss_sd_m
+    horizontal = [np.linalg.norm(_reported_sd(trajectories, runs, times)[:, :2], axis=1)
+                  for runs, times in ((obs.run_a, obs.time_a), (obs.run_b, obs.time_b))]
+    gnss = np.maximum(*horizontal) <= options.gnss_sd_m
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
     bad = _corroborated(obs, z > np.where(gnss, options.max_z_gnss, options.max_z), 2 * options.reach_m)
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
@@ -158,27 +159,23 @@ def _z(trajectories: dict[str, Trajectory], obs: _Observations, max_weak_sd_m: f
     d = np.einsum("nij,nj->ni", project, obs.d)
     var = obs.cov.copy()
     known = np.ones(len(d), bool)
-    for run, traj in trajectories.items():
-        for names, times in ((obs.run_a, obs.time_a), (obs.run_b, obs.time_b)):
-            m = names == run
-            if not m.any():
-                continue
-            if traj.sd is None:
-                known[m] = False
-                continue
-            var[m] += np.einsum("ni,ij->nij", traj.sd_at(times[m]) ** 2, np.eye(3))
+    for names, times in ((obs.run_a, obs.time_a), (obs.run_b, obs.time_b)):
+        sd = _reported_sd(trajectories, names, times)
+        reported = np.isfinite(sd).all(axis=1)
+        known &= reported
+        var[reported] += np.einsum("ni,ij->nij", sd[reported] ** 2, np.eye(3))
     var = np.einsum("nik,nkl,njl->nij", project, var, project) + (np.eye(3) - project)
     z = np.sqrt(np.einsum("ni,ni->n", d, np.linalg.solve(var, d[..., None])[..., 0]))
     return np.where(known, z, 0.0), d
 
 
-def _horizontal_sd(trajectories: dict[str, Trajectory], runs: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Each observation's run's reported horizontal sd at its time (infinite where none is reported)."""
-    out = np.full(len(runs), np.inf)
+def _reported_sd(trajectories: dict[str, Trajectory], runs: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """The sd (n, 3) each observation's run reports at its time (infinite where it reports none)."""
+    out = np.full((len(runs), 3), np.inf)
     for run, traj in trajectories.items():
         m = runs == run
         if m.any() and traj.sd is not None:
-            out[m] = np.linalg.norm(traj.sd_at(times[m])[:, :2], axis=1)
+            out[m] = traj.sd_at(times[m])
     return out
 
 
