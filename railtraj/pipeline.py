@@ -176,13 +176,12 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     resolved, alongtrack = resolve_along_track([r.offset for r in results], trajectories, options.alongtrack)
     results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
+    direction_note = fitted_direction_note(resolved) if options.alongtrack.enabled else None
     clock["alongtrack"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories)
-    notes = survey_notes + notes
-    if options.alongtrack.enabled:
-        notes += [n for n in [fitted_direction_note(resolved)] if n]
+    notes = survey_notes + notes + ([direction_note] if direction_note else [])
     clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -79,10 +79,10 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     obs = _pool(trajectories, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
-    z, d = _z(trajectories, obs, options.max_weak_sd_m)
-    horizontal = [np.linalg.norm(_reported_sd(trajectories, runs, times)[:, :2], axis=1)
-                  for runs, times in ((obs.run_a, obs.time_a), (obs.run_b, obs.time_b))]
-    gnss = np.maximum(*horizontal) <= options.gnss_sd_m
+    reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
+                                                                            (obs.run_b, obs.time_b))]
+    z, d = _z(obs, reported, options.max_weak_sd_m)
+    gnss = np.maximum(*(np.linalg.norm(sd[:, :2], axis=1) for sd in reported)) <= options.gnss_sd_m
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
     bad = _corroborated(obs, z > np.where(gnss, options.max_z_gnss, options.max_z), 2 * options.reach_m)
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
@@ -150,20 +150,20 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
     return _Observations(*(np.concatenate([r[i] for r in rows]) for i in range(8)))
 
 
-def _z(trajectories: dict[str, Trajectory], obs: _Observations, max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Each observation's disagreement in sd of the two runs' reported sd and its own covariance,
-    and the disagreement itself, both in the directions the observation constrains."""
+def _z(obs: _Observations, reported: list[np.ndarray], max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation's disagreement in sd of the two runs' reported sd (``reported``: run a's
+    and run b's, (n, 3) each, from :func:`_reported_sd`) and its own covariance, and the
+    disagreement itself, both in the directions the observation constrains."""
     vals, vecs = np.linalg.eigh(obs.cov)
     keep = (np.sqrt(np.maximum(vals, 0.0)) <= max_weak_sd_m).astype(float)
     project = np.einsum("nik,nk,njk->nij", vecs, keep, vecs)
     d = np.einsum("nij,nj->ni", project, obs.d)
     var = obs.cov.copy()
     known = np.ones(len(d), bool)
-    for names, times in ((obs.run_a, obs.time_a), (obs.run_b, obs.time_b)):
-        sd = _reported_sd(trajectories, names, times)
-        reported = np.isfinite(sd).all(axis=1)
-        known &= reported
-        var[reported] += np.einsum("ni,ij->nij", sd[reported] ** 2, np.eye(3))
+    for sd in reported:
+        given = np.isfinite(sd).all(axis=1)
+        known &= given
+        var[given] += np.einsum("ni,ij->nij", sd[given] ** 2, np.eye(3))
     var = np.einsum("nik,nkl,njl->nij", project, var, project) + (np.eye(3) - project)
     z = np.sqrt(np.einsum("ni,ni->n", d, np.linalg.solve(var, d[..., None])[..., 0]))
     return np.where(known, z, 0.0), d
