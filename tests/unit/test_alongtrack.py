@@ -399,3 +399,16 @@ def test_the_rate_of_a_few_votes_pair_with_a_noisy_profile_steers_nothing():
         assert all(fixed) if crowded else not any(fixed), (crowded, [o.status for o in out])
         for k, o in enumerate(out):
             assert o.status in ("ambiguous", "no_consensus") or abs(o.d[0] - _true_along(s[k : k + 1])[0]) < 0.01
+
+
+@pytest.mark.parametrize("gap, status", [(0.05, "ok"), (0.12, "coarse")])
+def test_a_pair_is_placed_no_better_than_its_profile_gap_allows(gap, status):
+    """Every edge of a tile may be sampled at one phase of the profiles (ribs every 1.5 m, 5 cm
+    gaps): the pair's windows then agree to millimetres and all miss together. Its sd grows by
+    ``sampling_sd`` times the gap: a 5 cm gap keeps it ok, a 12 cm gap (a fast train) is coarse."""
+    offsets, trajs, s = _chain({}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    offsets = [replace(o, info=dict(o.info, profile_spacing=gap)) for o in offsets]
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[3].status == status and (len(out[3].ties) > 0) == (status == "ok")
+    assert np.sqrt(out[3].cov[0, 0]) == pytest.approx(np.hypot(0.008, 0.15 * gap), rel=1e-6)
+    assert sum(o.status in ("ok", "coarse") for o in out) >= 11  # the chain is fixed alike
