@@ -47,7 +47,7 @@ from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
-from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd
+from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd, with_fading_margin
 from railtraj.track_direction import fitted_direction_note
 
 log = logging.getLogger(__name__)
@@ -191,6 +191,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     checked = check_reported_sd(trajectories, offsets, options.sd_check)
     notes += checked.summary["notes"]
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
+    corrected = with_fading_margin(corrected, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     adjustment["sd_check"] = checked.summary

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +41,7 @@ class SdCheckOptions:
     max_z_gnss: float = 3.5
     gnss_sd_m: float = 0.10
     reach_m: float = 25.0      # metres of the blamed run around a disagreement whose sd is raised
+    fade_m: float = 25.0       # ... beyond which its corrected sd still fades out over this many metres
     tie_sd_m: float = 0.01     # sd of one tie, per axis (as the spline optimizer's tie_sigma_m)
     max_weak_sd_m: float = 0.3  # directions of an offset with larger sd are not compared (as the optimizer's)
 
@@ -69,6 +70,9 @@ class SdCheck:
     trajectories: dict[str, Trajectory]
     widening: dict[str, np.ndarray]
     summary: dict
+    #: per blamed run, the covariance (n_epochs, 3, 3) to add to its *corrected* sd beyond the
+    #: widened spans, fading out over ``fade_m`` (see :func:`with_fading_margin`)
+    margin: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
@@ -92,7 +96,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     # and against run c in another 26-50 m on; counted within one reach, run b was blamed too
     # and dragged 5-6 cm off with the reference (a held-out portal survey: max 9.2 -> 4.7 cm)
     at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m)
-    out, widening = dict(trajectories), {}
+    out, widening, margin = dict(trajectories), {}, {}
     for run in runs:
         traj = trajectories[run]
         blamed = bad & _blamed(run, runs, obs, at_odds)
@@ -100,7 +104,8 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
             continue
         as_a, as_b = blamed & (obs.run_a == run), blamed & (obs.run_b == run)
         seen = np.concatenate([d[as_a], d[as_b]])
-        extra, track_sd = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen, options.reach_m)
+        extra, track_sd, margin[run] = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen,
+                                                 options.reach_m, options.fade_m)
         widening[run] = extra
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, extra))
         changed = np.any(track_sd > 0, axis=1)
@@ -117,7 +122,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
                 f"widened there, so the adjustment follows the runs that agree")
         log.warning(note)
         summary["notes"].append(note)
-    return SdCheck(out, widening, summary)
+    return SdCheck(out, widening, summary, margin)
 
 
 def widened_sd(sd: np.ndarray, widening: np.ndarray) -> np.ndarray:
@@ -225,11 +230,13 @@ def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m:
     return count
 
 
-def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: float,
+              fade_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The covariance (n_epochs, 3, 3) that makes the run's sd cover the disagreements ``seen`` at
     ``times``, within ``reach_m`` metres travelled, and its sd (n_epochs, 3) along the track, across
     it and up. Kept in the track frame so that a bias across the track does not free the run along
-    it, where its reported sd may still be right."""
+    it, where its reported sd may still be right. Third, the margin (n_epochs, 3, 3) by which that
+    widening fades out linearly over the next ``fade_m`` metres (:func:`with_fading_margin`)."""
     from scipy.ndimage import maximum_filter1d
 
     frame = _track_frame(traj.xyz)
@@ -238,9 +245,38 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
     track_sd = np.zeros((bins[-1] + 1, 3))
     np.maximum.at(track_sd, bins[at], size)
-    track_sd = maximum_filter1d(track_sd, size=2 * int(np.ceil(reach_m)) + 1, axis=0, mode="constant")[bins]
+    track_sd = maximum_filter1d(track_sd, size=2 * int(np.ceil(reach_m)) + 1, axis=0, mode="constant")
+    faded = track_sd.copy()
+    steps = int(np.ceil(fade_m))
+    for j in range(1, min(steps, len(faded) - 1) + 1):  # metres of fade (tens), not epochs
+        share = 1.0 - j / (steps + 1)
+        faded[j:] = np.maximum(faded[j:], share * track_sd[:-j])
+        faded[:-j] = np.maximum(faded[:-j], share * track_sd[j:])
+    track_sd, faded = track_sd[bins], faded[bins]
     extra = np.einsum("nki,nk,nkj->nij", frame, track_sd**2, frame)
-    return extra, track_sd
+    margin = np.einsum("nki,nk,nkj->nij", frame, faded**2 - track_sd**2, frame)
+    return extra, track_sd, margin
+
+
+def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> dict[str, Trajectory]:
+    """The corrected runs with their sd widened by the check's fading margin.
+
+    A bias does not stop where the ties stop showing it: at a simulated portal, GNSS multipath
+    grew over 40 m of open sky that only weak tile pairs saw, and 25 m from the last convicting
+    tie the corrected run still sat 0.2 m off at 15 sd. Freeing the run over that stretch in the
+    adjustment too let it drift from runs whose bias had ended (maximum inter-run error 4-5 ->
+    6-17 cm on 13 portal surveys), so only its corrected sd says that its GNSS may still be
+    biased there."""
+    out = dict(corrected)
+    for run, margin in checked.margin.items():
+        traj, checked_time = corrected.get(run), checked.trajectories[run].time
+        if traj is None or traj.sd is None:
+            continue
+        if not np.array_equal(traj.time, checked_time):  # an optimizer that resampled the run
+            flat = margin.reshape(len(margin), 9)
+            margin = np.column_stack([np.interp(traj.time, checked_time, c) for c in flat.T]).reshape(-1, 3, 3)
+        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, margin))
+    return out
 
 
 def _track_frame(xyz: np.ndarray) -> np.ndarray:

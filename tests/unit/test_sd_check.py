@@ -156,3 +156,29 @@ def test_a_biased_reference_run_is_blamed_alone_where_its_tile_pairs_are_apart(m
     summary = check_reported_sd(trajs, star).summary
     assert set(summary["runs"]) == {"run_a"}
     assert summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
+
+
+def test_past_the_widened_span_the_corrected_sd_fades_out_not_stops():
+    """A bias does not end where the ties stop showing it: beyond the widened span the corrected
+    run's sd keeps a margin that fades out linearly over ``fade_m``; the correction is untouched."""
+    from railtraj.sd_check import with_fading_margin
+
+    trajs, offsets, ties = _survey()
+    options = SdCheckOptions()
+    checked = check_reported_sd(trajs, offsets, options)
+    corrected = SplineOptimizer().optimize(trajs, ties, [], widening=checked.widening)
+    out = with_fading_margin(corrected, checked)
+    s = _chainage(trajs["run_a"])
+    widened = checked.trajectories["run_a"].sd[:, 1] > SD * 1.01
+    last = s[widened].max()  # the widened span's end, past the bias
+    at = lambda x: int(np.argmin(np.abs(s - x)))  # noqa: E731
+    full = checked.trajectories["run_a"].sd[at(last), 1]
+    for past in (5.0, 15.0):
+        share = 1.0 - np.ceil(past) / (options.fade_m + 1)
+        assert out["run_a"].sd[at(last + past), 1] >= 0.9 * share * full  # still widened, fading
+        assert out["run_a"].sd[at(last + past), 1] < full
+    beyond = s > last + options.fade_m + 2
+    np.testing.assert_array_equal(out["run_a"].sd[beyond], corrected["run_a"].sd[beyond])
+    for r in trajs:
+        np.testing.assert_array_equal(out[r].xyz, corrected[r].xyz)
+    np.testing.assert_array_equal(out["run_b"].sd, corrected["run_b"].sd)
