@@ -191,7 +191,6 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     checked = check_reported_sd(trajectories, offsets, options.sd_check)
     notes += checked.summary["notes"]
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
-    corrected = with_fading_margin(corrected, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     adjustment["sd_check"] = checked.summary
@@ -205,7 +204,8 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
              checked: SdCheck | None = None) -> tuple[dict[str, Trajectory], dict[str, Any]]:
     """Run the optimizer; control goes to optimizers that take it, or a warning says it was not used.
     Where the sd check widened a run's sd, an optimizer that takes ``widening`` gets it with the
-    reported trajectories; any other gets trajectories whose per-axis sd is widened."""
+    reported trajectories; any other gets trajectories whose per-axis sd is widened. Either way the
+    corrected runs' sd then fades out past the widened spans (:func:`with_fading_margin`)."""
     kwargs = {}
     if checked is not None and checked.widening:
         if "widening" in inspect.signature(optimizer.optimize).parameters:
@@ -221,6 +221,8 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
             log.warning(note)
             notes.append(note)
     corrected = optimizer.optimize(trajectories, ties, offsets, **kwargs)
+    if checked is not None:
+        corrected = with_fading_margin(corrected, checked)
     adjustment = dict(getattr(optimizer, "diagnostics", None) or {})
     notes += adjustment.get("notes", [])
     if all(np.array_equal(corrected[r].xyz, trajectories[r].xyz) for r in trajectories):

@@ -231,7 +231,7 @@ def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m:
 
 
 def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: float,
-              fade_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              fade_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The covariance (n_epochs, 3, 3) that makes the run's sd cover the disagreements ``seen`` at
     ``times``, within ``reach_m`` metres travelled, and its sd (n_epochs, 3) along the track, across
     it and up. Kept in the track frame so that a bias across the track does not free the run along
