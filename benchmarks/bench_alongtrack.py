@@ -45,18 +45,26 @@ def survey_for(scenario: str, seed: int, size: float, vary: tuple[str, ...] = ()
 
 
 def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
-    """The scenario with ``key=value`` changes: a field of its geometry or scanner, or ``speed``
-    (every run's speed times the value), to try surveys the catalogue does not hold."""
+    """The scenario with ``key=value`` changes: a field of its geometry or scanner, ``speed``
+    (every run's speed times the value), ``tile_size`` (m) or ``runs`` (that many passes, the
+    catalogue's repeated in turn, 600 s apart), to try surveys the catalogue does not hold."""
     for item in vary:
         key, value = item.split("=")
         if key == "speed":
             scn = replace(scn, runs=tuple(replace(r, speed=r.speed * float(value)) for r in scn.runs))
+        elif key == "tile_size":
+            scn = replace(scn, tile_size=float(value))
+        elif key == "runs":
+            base = scn.runs
+            scn = replace(scn, runs=tuple(replace(base[k % len(base)], run_id=f"run_{chr(ord('a') + k)}",
+                                                  start_time=base[0].start_time + 600.0 * k)
+                                          for k in range(int(value))))
         elif hasattr(scn.geometry, key):
             scn = replace(scn, geometry=replace(scn.geometry, **{key: type(getattr(scn.geometry, key) or 0.0)(value)}))
         elif hasattr(scn.scanner, key):
             scn = replace(scn, scanner=replace(scn.scanner, **{key: type(getattr(scn.scanner, key))(value)}))
         else:
-            raise SystemExit(f"--vary {item}: not a geometry or scanner field, nor speed")
+            raise SystemExit(f"--vary {item}: not a geometry or scanner field, nor speed, tile_size or runs")
     return scn
 
 
@@ -153,7 +161,7 @@ def main() -> None:
     ap.add_argument("--optimizer", default="spline")
     ap.add_argument("--pipeline", default="global", choices=["global", "multirun"])
     ap.add_argument("--size", type=float, default=1.0)
-    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry or scanner field, or speed (factor)")
+    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry or scanner field, speed (factor), tile_size (m) or runs (count)")
     ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)

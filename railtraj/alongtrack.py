@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from railtraj.data import Ties, TileOffset, Trajectory
-from railtraj.track_direction import HALF_SPAN_S, on_travel_direction, travel_step
+from railtraj.track_direction import on_travel_direction, travel_step
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
             out[k] = _at_prior(_apply(o, 0.0, False, trajectories), trajectories)
             if not o.ok:  # an ok pair's demotion is reported: its matcher's ok had no ground
                 continue
-            report.append({"run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+            report.append({"pair": k, "run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
                            "status_before": o.status, "status": out[k].status, "verdict": NO_EVIDENCE,
                            "shift_m": 0.0, "margin": 0.0, "candidates": 0, "candidate_shifts_m": []})
     for (run_a, run_b), chain in sorted(chains.items()):
@@ -153,7 +153,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
             out[pair.index] = _unless_few_votes(out[pair.index])
-            report.append({"run_a": run_a, "run_b": run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+            report.append({"pair": pair.index, "run_a": run_a, "run_b": run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
                            "status_before": o.status,
                            "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
                            "margin": round(min(margin, 1e6), 1), "candidates": len(pair.shift),
@@ -161,7 +161,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
         demoted = _apply(out[k], 0.0, False, trajectories)
         out[k] = _unless_few_votes(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
-        report.append({"run_a": out[k].run_a, "run_b": out[k].run_b, "tile_a": out[k].tile_a,
+        report.append({"pair": k, "run_a": out[k].run_a, "run_b": out[k].run_b, "tile_a": out[k].tile_a,
                        "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
                        "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
                        "candidate_shifts_m": []})
@@ -669,9 +669,9 @@ def _at_predicted(o: TileOffset, u0: float, along: float, mu: float, var: float,
 
 
 def _velocity(traj: Trajectory, t: float) -> np.ndarray:
-    """Horizontal velocity (m/s) at time ``t``, over half a second."""
-    move, _ = travel_step(traj, t)
-    v = move / (2 * HALF_SPAN_S)
+    """Horizontal velocity (m/s) at time ``t``, over the half second about it (less at the run's ends)."""
+    move, seconds = travel_step(traj, t)
+    v = move / seconds if seconds > 0 else np.zeros(3)
     v[2] = 0.0
     return v
 

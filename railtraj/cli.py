@@ -94,6 +94,7 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
     grid_dir = to_absolute_path(grid_dir) if grid_dir else None
     options = PipelineOptions(mode=pipe.name, pairs=pipe.pairs, reference_run=pipe.reference_run,
                               tile=pipe.tile, max_pairs=pipe.max_pairs, min_overlap_m=pipe.min_overlap_m,
+                              pair_part_m=pipe.pair_part_m,
                               max_misalignment_m=pipe.max_misalignment_m, tile_cache_gb=pipe.tile_cache_gb,
                               crs=cfg.crs, grid_dir=grid_dir,
                               sbet_crs=sbet_crs,

@@ -36,6 +36,7 @@ class PipelineConfig:
     tile: str | None = None         # local only: tile name or "x,y"
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
+    pair_part_m: float = 25.0          # larger tiles are matched in parts this long (0: whole tiles)
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution

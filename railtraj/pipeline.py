@@ -39,6 +39,7 @@ from railtraj.io.survey import (
     Survey,
     TilePair,
     find_overlaps,
+    in_parts,
     open_survey,
     require_overlaps,
     unparsed_crs_note,
@@ -77,6 +78,7 @@ class PipelineOptions:
     tile: str | None = None
     max_pairs: int = 0
     min_overlap_m: float = 2.0
+    pair_part_m: float = 25.0
     max_misalignment_m: float = 3.0
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
@@ -235,8 +237,8 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
 
 def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
     """Overlapping tile pairs to match, per the pipeline mode."""
-    pairs = find_overlaps(survey, min_overlap_m=options.min_overlap_m)
-    require_overlaps(pairs, survey)
+    pairs = in_parts(require_overlaps(find_overlaps(survey, min_overlap_m=options.min_overlap_m), survey),
+                     options.pair_part_m)
     if options.pairs == "reference":
         ref = options.reference_run or sorted(survey.runs)[0]
         if ref not in survey.runs:

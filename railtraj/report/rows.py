@@ -62,7 +62,7 @@ def correction_rows(result) -> list[dict[str, Any]]:
 
 def problem_rows(result, places: list[PairPlace], alongtrack: list[dict]) -> list[dict[str, Any]]:
     """Every pair that is not ``ok``, with the reason in words, by runs and chainage."""
-    along = {(r["run_a"], r["run_b"], r["tile_a"], r["tile_b"]): r for r in alongtrack}
+    along = {r["pair"]: r for r in alongtrack}  # by position: a large tile pair is matched in parts
     rows = []
     for p in places:
         o = result.pairs[p.index].offset
@@ -71,7 +71,7 @@ def problem_rows(result, places: list[PairPlace], alongtrack: list[dict]) -> lis
         rows.append({"runs": p.runs, "tile a": o.tile_a, "tile b": o.tile_b,
                      "chainage [m]": round(p.chainage),
                      "status": Badge(o.status, COLOURS[p.verdict]),
-                     "reason": pair_reason(o, along.get((o.run_a, o.run_b, o.tile_a, o.tile_b)))})
+                     "reason": pair_reason(o, along.get(p.index))})
     return sorted(rows, key=lambda r: (r["runs"], r["chainage [m]"]))
 
 

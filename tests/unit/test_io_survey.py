@@ -15,6 +15,7 @@ from railtraj.io.las import write_tile as _write_tile
 from railtraj.io.sbet import trajectory_to_sbet, write_sbet
 from railtraj.io.survey import (
     find_overlaps,
+    in_parts,
     open_survey,
     read_control,
     require_overlaps,
@@ -198,3 +199,22 @@ def test_sbet_run_loads_with_smrmsg(tmp_path, make_trajectory, make_tile):
     assert np.abs(back.xyz - traj.xyz).max() < 1e-3
     assert np.abs(back.rpy - traj.rpy).max() < 1e-9
     np.testing.assert_allclose(back.sd[0], [0.02, 0.03, 0.05])
+
+
+def test_a_large_overlap_is_cut_into_parts_that_tile_it(survey_dir):
+    s = open_survey(survey_dir)
+    run = type(s.runs["run-a"])
+    a, b = _header([0, 0, 5], [50, 50, 9]), _header([10, 0, 4], [60, 28, 8])
+    fake = type(s)(survey_dir, {"a": run("a", survey_dir, survey_dir, [a]),
+                                "b": run("b", survey_dir, survey_dir, [b])})
+    whole = find_overlaps(fake)
+    assert in_parts(whole, 0.0) is whole
+    parts = in_parts(whole, 25.0)  # overlap 40 x 28 m: 2 x 1 parts (28 m is within 1.2 x 25)
+    lo, hi = np.array([p.overlap_min for p in parts]), np.array([p.overlap_max for p in parts])
+    assert len(parts) == 2 and all(p.tile_a is a and p.tile_b is b for p in parts)
+    np.testing.assert_allclose((hi - lo)[:, :2], [[20.0, 28.0], [20.0, 28.0]])
+    np.testing.assert_allclose(lo.min(axis=0), whole[0].overlap_min)
+    np.testing.assert_allclose(hi.max(axis=0), whole[0].overlap_max)
+    assert np.isclose(np.prod((hi - lo)[:, :2], axis=1).sum(), np.prod((whole[0].overlap_max - whole[0].overlap_min)[:2]))
+    kept = in_parts(whole, 50.0)  # within 1.2 x part_m: kept whole
+    assert len(kept) == 1 and kept[0] is whole[0]
