@@ -132,9 +132,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
             out[k] = _at_prior(_apply(o, 0.0, False, trajectories), trajectories)
             if not o.ok:  # an ok pair's demotion is reported: its matcher's ok had no ground
                 continue
-            report.append({"pair": k, "run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
-                           "status_before": o.status, "status": out[k].status, "verdict": NO_EVIDENCE,
-                           "shift_m": 0.0, "margin": 0.0, "candidates": 0, "candidate_shifts_m": []})
+            report.append(_report_row(k, o, out[k].status, NO_EVIDENCE))
     for (run_a, run_b), chain in sorted(chains.items()):
         chain.sort(key=lambda p: p.s)
         chain = _consensus_rates(chain, options)
@@ -153,24 +151,29 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
             out[pair.index] = _unless_few_votes(out[pair.index])
-            report.append({"pair": pair.index, "run_a": run_a, "run_b": run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
-                           "status_before": o.status,
-                           "status": out[pair.index].status, "verdict": verdict, "shift_m": round(shift, 3),
-                           "margin": round(min(margin, 1e6), 1), "candidates": len(pair.shift),
-                           "candidate_shifts_m": np.round(pair.shift, 2).tolist()})
+            report.append(_report_row(pair.index, o, out[pair.index].status, verdict, shift, margin, pair.shift))
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
         demoted = _apply(out[k], 0.0, False, trajectories)
         out[k] = _unless_few_votes(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
-        report.append({"pair": k, "run_a": out[k].run_a, "run_b": out[k].run_b, "tile_a": out[k].tile_a,
-                       "tile_b": out[k].tile_b, "status_before": "ok", "status": out[k].status,
-                       "verdict": "cycle not closed", "shift_m": 0.0, "margin": 0.0, "candidates": 0,
-                       "candidate_shifts_m": []})
+        report.append(_report_row(k, out[k], out[k].status, "cycle not closed", before="ok"))
     out = [_within_reach(_unless_few_votes(o), options) for o in out]  # (and those outside any chain)
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
              sum(r["status"] != "ok" for r in report))
     return out, report
+
+
+def _report_row(index: int, o: TileOffset, status: str, verdict: str, shift: float = 0.0, margin: float = 0.0,
+                candidate_shifts: np.ndarray | None = None, before: str | None = None) -> dict:
+    """One row of the along-track report (metrics.json ``adjustment.alongtrack``): the pair's row
+    in offsets.csv (``pair``), its runs and tiles, its status before and after, the verdict and
+    the chosen shift, its margin and the candidates' shifts."""
+    shifts = np.zeros(0) if candidate_shifts is None else candidate_shifts
+    return {"pair": index, "run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+            "status_before": o.status if before is None else before, "status": status, "verdict": verdict,
+            "shift_m": round(shift, 3), "margin": round(min(margin, 1e6), 1),
+            "candidates": len(shifts), "candidate_shifts_m": np.round(shifts, 2).tolist()}
 
 
 def _cycle_breaks(offsets: list[TileOffset], options: AlongTrackOptions) -> list[int]:

@@ -258,6 +258,13 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     return extra, track_sd, margin
 
 
+def covariance_at(times: np.ndarray, epochs: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Per-epoch covariances ``cov`` (n_epochs, 3, 3) at ``epochs``, linearly interpolated to
+    ``times`` (component by component: still symmetric positive semi-definite)."""
+    flat = cov.reshape(len(cov), 9)
+    return np.column_stack([np.interp(times, epochs, c) for c in flat.T]).reshape(-1, 3, 3)
+
+
 def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> dict[str, Trajectory]:
     """The corrected runs with their sd widened by the check's fading margin.
 
@@ -272,10 +279,7 @@ def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> di
         traj, checked_time = corrected.get(run), checked.trajectories[run].time
         if traj is None or traj.sd is None:
             continue
-        if not np.array_equal(traj.time, checked_time):  # an optimizer that resampled the run
-            flat = margin.reshape(len(margin), 9)
-            margin = np.column_stack([np.interp(traj.time, checked_time, c) for c in flat.T]).reshape(-1, 3, 3)
-        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, margin))
+        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, covariance_at(traj.time, checked_time, margin)))
     return out
 
 

@@ -32,7 +32,7 @@ from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
-from railtraj.sd_check import widened_sd
+from railtraj.sd_check import covariance_at, widened_sd
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +124,7 @@ class SplineOptimizer:
         if widening is None:
             return [obs.prior(model, run_id, sd * np.sqrt(per_knot)[:, None]),
                     obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
-        extra = np.stack([np.interp(times, traj.time, widening[:, i, j]) for i in range(3) for j in range(3)],
-                         axis=1).reshape(-1, 3, 3)
+        extra = covariance_at(times, traj.time, widening)
         # where a GNSS bias widened it, the run's error is not the INS drift the smoothness models:
         # it may bend more in the widened directions, as its sd grew there but at most
         # max_bend_widening times (a freer bend let a wrong weak pair at a portal pull 0.8 m)
