@@ -45,7 +45,8 @@ def survey_for(scenario: str, seed: int, size: float, vary: tuple[str, ...] = ()
 
 
 def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
-    """The scenario with ``key=value`` changes: a field of its geometry or scanner, ``speed``
+    """The scenario with ``key=value`` changes: a field of its geometry, scanner or drift,
+    ``tunnel_length`` (every section but the cuttings times the value), ``speed``
     (every run's speed times the value), ``tile_size`` (m) or ``runs`` (that many passes, the
     catalogue's repeated in turn, 600 s apart), to try surveys the catalogue does not hold."""
     for item in vary:
@@ -59,12 +60,17 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
             scn = replace(scn, runs=tuple(replace(base[k % len(base)], run_id=f"run_{chr(ord('a') + k)}",
                                                   start_time=base[0].start_time + 600.0 * k)
                                           for k in range(int(value))))
+        elif key == "tunnel_length":
+            scn = replace(scn, geometry=replace(scn.geometry, sections=tuple(
+                (k, n if k == "cutting" else n * float(value)) for k, n in scn.geometry.sections)))
+        elif hasattr(scn.drift, key):
+            scn = replace(scn, drift=replace(scn.drift, **{key: type(getattr(scn.drift, key))(value)}))
         elif hasattr(scn.geometry, key):
             scn = replace(scn, geometry=replace(scn.geometry, **{key: type(getattr(scn.geometry, key) or 0.0)(value)}))
         elif hasattr(scn.scanner, key):
             scn = replace(scn, scanner=replace(scn.scanner, **{key: type(getattr(scn.scanner, key))(value)}))
         else:
-            raise SystemExit(f"--vary {item}: not a geometry or scanner field, nor speed, tile_size or runs")
+            raise SystemExit(f"--vary {item}: not a geometry, scanner or drift field, nor tunnel_length, speed, tile_size or runs")
     return scn
 
 

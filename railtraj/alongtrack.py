@@ -51,6 +51,7 @@ class AlongTrackOptions:
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
     rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
+    walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
@@ -136,11 +137,12 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     for (run_a, run_b), chain in sorted(chains.items()):
         chain.sort(key=lambda p: p.s)
         chain = _consensus_rates(chain, options)
-        walk = _rate_walk(chain, options)
-        if walk > options.rate_walk:
-            log.info("along-track %s~%s: the drift rate wanders %.2f mm/m per sqrt(m), measured from its pairs "
-                     "(rate_walk %.2f at least)", run_a, run_b, walk * 1e3, options.rate_walk * 1e3)
-        verdicts, mu, var = _resolve_chain(chain, replace(options, rate_walk=walk))
+        walks = _rate_walks(chain, options)
+        if walks.max() > options.rate_walk:
+            log.info("along-track %s~%s: the drift rate wanders %.2f-%.2f mm/m per sqrt(m), measured from its "
+                     "pairs (rate_walk %.2f at least)", run_a, run_b, walks.min() * 1e3, walks.max() * 1e3,
+                     options.rate_walk * 1e3)
+        verdicts, mu, var = _resolve_chain(chain, options, walks)
         for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
             o, resolved = offsets[pair.index], verdict == "resolved"
             extra = _placement_variance(o, shift, pair.sd, options)
@@ -342,7 +344,7 @@ def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.clip(out, -0.5, 0.5)
 
 
-def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
+def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndarray | None = None
                    ) -> tuple[list[tuple[float, float, str]], np.ndarray, np.ndarray]:
     """Bootstrapped fixing along one run pair, as in GNSS integer ambiguity resolution.
 
@@ -364,7 +366,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
     * and that alias stands out within a period of itself, not only against the whole window
       (``Pair.movable``; a flat profile's top sample is no alias).
 
-    Fixed pairs then anchor the next round, until no pair can be fixed. Returns, per pair, the
+    Fixed pairs then anchor the next round, until no pair can be fixed. ``walks`` is the drift
+    rate's wander per step (:func:`_rate_walks`; ``rate_walk`` everywhere if None). Returns, per pair, the
     chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
     along-track offset (mean, variance) at every pair.
     """
@@ -372,7 +375,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
     fixed = np.full(n, np.nan)  # along offset of the fixed candidate
     result: list[tuple[float, float, str]] = [(0.0, 0.0, "ambiguous")] * n
     while True:
-        mu, var = _smooth(chain, fixed, options)
+        mu, var = _smooth(chain, fixed, options, walks)
         newly = []
         for i, p in enumerate(chain):
             if np.isfinite(fixed[i]):
@@ -405,19 +408,37 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions
             result[i] = (float(chain[i].shift[best]), margin, "resolved")
 
 
-def _rate_walk(chain: list[Pair], options: AlongTrackOptions) -> float:
-    """How fast this run pair's drift rate wanders, from its own pairs' rates (at least
-    ``rate_walk``): two rates ``ds`` apart differ by ``2 rate_sd^2 + walk^2 ds`` in the mean
-    square. Measured over the distances the chain bridges (50-150 m); the median keeps stray
-    rates out."""
+def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
+    """How fast this run pair's drift rate wanders, per step of the chain (entry ``i``: from
+    pair ``i - 1`` to ``i``), from its own pairs' rates, at least ``rate_walk``: two rates ``ds``
+    apart differ by ``2 rate_sd^2 + walk^2 ds`` in the mean square.
+
+    Over the whole chain it is measured over the distances the chain bridges (50-150 m); the
+    median keeps stray rates out. But an INS's drift need not bend alike everywhere: where its
+    velocity error wanders (simulated as an integrated random walk), the rate climbed from -10
+    to -34 mm/m and back to +18 within 200 m, four times the chain's median wander, and the
+    prediction across it sat 0.36 m (5 sd) off, so three ``ok`` pairs right to 1 cm could not be
+    fixed. So near each step it is measured again, from the pairs 10-60 m apart whose midpoint
+    lies within ``walk_radius``, and the larger of the two counts."""
+    s_all = np.array([p.s for p in chain])
+    walks = np.full(len(chain), options.rate_walk)
     rates = np.array([p.rate for p in chain if p.rate_trusted])
-    s = np.array([p.s for p in chain if p.rate_trusted])
+    s = s_all[[p.rate_trusted for p in chain]]
     ds = np.abs(s[None, :] - s[:, None])
+    q = ((rates[None, :] - rates[:, None]) ** 2 - 2 * options.rate_sd**2) / np.maximum(ds, 1e-9)
     far = np.triu((ds >= 50.0) & (ds <= 150.0), 1)
-    if far.sum() < 5:
-        return options.rate_walk
-    q = np.median(((rates[None, :] - rates[:, None]) ** 2 - 2 * options.rate_sd**2)[far] / ds[far])
-    return float(max(options.rate_walk, np.sqrt(max(q, 0.0))))
+    if far.sum() >= 5:
+        walks[:] = max(options.rate_walk, np.sqrt(max(np.median(q[far]), 0.0)))
+    near = np.triu((ds >= 10.0) & (ds <= 60.0), 1)
+    if options.walk_radius <= 0 or near.sum() < 5:
+        return walks
+    mid, q_near = ((s[None, :] + s[:, None]) / 2)[near], q[near]
+    step_mid = (s_all[1:] + s_all[:-1]) / 2
+    around = np.abs(mid[None, :] - step_mid[:, None]) <= options.walk_radius  # (steps, rate pairs)
+    counted = around.sum(axis=1) >= 5
+    local = np.nanmedian(np.where(around, q_near[None, :], np.nan)[counted], axis=1) if counted.any() else []
+    walks[1:][counted] = np.maximum(walks[1:][counted], np.sqrt(np.maximum(local, 0.0)))
+    return walks
 
 
 def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair]:
@@ -467,11 +488,12 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
     return out
 
 
-def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray]:
+def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
+            walks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother).
 
     The state is the offset and its rate (per metre of run b's travel); the rate wanders as a
-    random walk of density ``rate_walk`` (the drift's bend as white noise, as in the
+    random walk of density ``walks`` per step (``rate_walk`` if None: the drift's bend as white noise, as in the
     adjustment's smoothness), so the offset between two pairs follows the rate the pairs
     around them agree on, not just the mean of two. Observed at every pair: its measured rate
     (``rate_sd``), the offset as 0 +- the trajectories' sd, and its fixed candidate at fixed
@@ -486,7 +508,7 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
     n = len(chain)
     xf, pf = np.zeros((n, 2)), np.zeros((n, 2, 2))  # filtered
     xp, pp = np.zeros((n, 2)), np.zeros((n, 2, 2))  # predicted
-    q = options.rate_walk**2
+    q = (np.full(n, options.rate_walk) if walks is None else np.asarray(walks, float)) ** 2
     for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
         if i == 0:
             xp[i], pp[i] = np.zeros(2), np.diag([1e6, 1.0])
@@ -494,7 +516,7 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) ->
             ds = p.s - chain[i - 1].s
             F = np.array([[1.0, ds], [0.0, 1.0]])
             xp[i] = F @ xf[i - 1]
-            pp[i] = F @ pf[i - 1] @ F.T + q * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
+            pp[i] = F @ pf[i - 1] @ F.T + q[i] * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
         x, P = xp[i].copy(), pp[i].copy()
         # the smoother's error is one error over prior_correlation metres: count it once there
         gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)

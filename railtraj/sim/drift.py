@@ -44,6 +44,7 @@ class DriftSpec:
     open_noise_tau: float = 1.0
     sd_open: tuple[float, float, float] = (0.015, 0.015, 0.025)
     sd_scale: float = 0.5
+    roughness: float = 0.0          # an integrated random walk this large against the smooth drift (0: none)
     heading_bias_deg: float = 0.0
     heading_bias_runs: tuple[str, ...] = ()
     multipath: tuple[Multipath, ...] = ()
@@ -82,6 +83,22 @@ def _smooth_noise(n: int, dt: float, tau: float, rng: np.random.Generator) -> np
     return x
 
 
+def _bridged_walk(n: int, env: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """An integrated random walk (n, 3) (white acceleration, as an INS's velocity error wanders)
+    that is zero where the outage meets open sky, tapered like ``env``: drift whose rate changes
+    everywhere, not only on the smooth envelope's scale."""
+    u = np.linspace(0, 1, n)[:, None]
+    walk = np.cumsum(np.cumsum(rng.standard_normal((n, 3)), axis=0), axis=0)
+    start_open, end_open = env[0] < 0.5, env[-1] < 0.5
+    if start_open and end_open:
+        walk -= walk[0] + u * (walk[-1] - walk[0])
+    elif start_open:
+        walk -= walk[0]
+    elif end_open:
+        walk -= walk[-1]
+    return walk * np.cbrt(env)[:, None]
+
+
 def _outage_drift(n: int, env: np.ndarray, spec: DriftSpec, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """One outage's drift (n, 3): envelope x (constant direction + a slow wander), scaled."""
     u = np.linspace(0, 1, n)
@@ -90,6 +107,11 @@ def _outage_drift(n: int, env: np.ndarray, spec: DriftSpec, rng: np.random.Gener
     horiz = env[:, None] * (np.array([np.sin(az), np.cos(az)]) + wander[:, None]
                             * np.array([np.cos(az), -np.sin(az)]))
     vert = env * (rng.choice([-1.0, 1.0]) + 0.3 * np.sin(2 * np.pi * rng.uniform(0.5, 1.5) * u))
+    if spec.roughness > 0:
+        walk = _bridged_walk(n, env, rng)
+        horiz += walk[:, :2] * (spec.roughness * np.linalg.norm(horiz, axis=1).max()
+                                / max(np.linalg.norm(walk[:, :2], axis=1).max(), 1e-12))
+        vert += walk[:, 2] * (spec.roughness * np.abs(vert).max() / max(np.abs(walk[:, 2]).max(), 1e-12))
     peak_h = rng.uniform(spec.min_fraction, 1.0) * spec.max_horizontal
     peak_v = rng.uniform(spec.min_fraction, 1.0) * spec.max_vertical
     horiz *= peak_h / max(np.linalg.norm(horiz, axis=1).max(), 1e-12)

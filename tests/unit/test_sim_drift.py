@@ -85,3 +85,22 @@ def test_heading_bias_only_for_listed_runs():
     assert info["heading_bias_deg"] == 0.05
     spec = DriftSpec(heading_bias_deg=0.05, heading_bias_runs=("x",))
     np.testing.assert_allclose(drift(true, s, sky, spec, np.random.default_rng(0))[0].rpy[:, 2], 90.0)
+
+
+def test_a_rough_drift_bends_more_and_still_meets_the_portals():
+    """``roughness`` adds an integrated random walk (white acceleration): the drift's rate
+    changes everywhere along the outage, not only on the envelope's scale, while the error stays
+    zero at the portals and within the configured maximum."""
+    true, s, sky = _straight()
+    bends = {}
+    for roughness in (0.0, 1.0):
+        spec = DriftSpec(roughness=roughness)
+        bends[roughness] = []
+        for seed in range(6):
+            est, _ = drift(true, s, sky, spec, np.random.default_rng(seed))
+            err = (est.xyz - true.xyz)[:, :2]
+            h = np.linalg.norm(err, axis=1)
+            assert h[sky].max() < 0.05 and h.max() <= spec.max_horizontal + 1e-9
+            every_10m = err[1500:4500:100]  # inside, away from the open-sky noise
+            bends[roughness].append(np.abs(np.diff(every_10m, 2, axis=0)).max() / h.max())
+    assert np.median(bends[1.0]) > 1.5 * np.median(bends[0.0])
