@@ -348,10 +348,12 @@ def test_a_profile_peak_less_than_a_period_from_the_windows_fit_is_no_alias_to_m
     assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < 0.01  # a real alias is
 
 
-def _few_votes(o: TileOffset, crowded: bool = False, rate: float | None = None) -> TileOffset:
+def _few_votes(o: TileOffset, crowded: bool = False, rate: float | None = None, windows: int = 1) -> TileOffset:
     """``o`` as the matcher returns a pair with too few votes: ambiguous, with ``few_votes``;
-    ``crowded``: its profile's peaks 0.15 m apart (noise, no alias); ``rate``: its curve's slope."""
+    ``crowded``: its profile's peaks 0.15 m apart (noise, no alias); ``rate``: its curve's slope;
+    ``windows``: how many windows its curve rests on."""
     info = dict(o.info, few_votes=3)
+    info["piecewise"] = dict(info["piecewise"], windows=[[0.0] * 5] * windows)
     if crowded:
         prof = info["alias_profile"]
         ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
@@ -431,3 +433,21 @@ def test_where_the_drift_bends_faster_than_elsewhere_no_alias_is_fixed(monkeypat
     assert len(fixed) >= 12
     for k in fixed:
         assert abs(out[k].d[0] - bump(s[k])) < 0.01, (k, out[k].status, out[k].d[0] - bump(s[k]))
+
+
+@pytest.mark.parametrize(("windows", "used"), [(1, False), (2, True), (4, True)])
+def test_an_unresolved_pair_is_used_across_and_up_only_on_two_windows_or_more(windows, used):
+    """Unresolved pairs, with few votes or not, constrain across and up, unless their curve rests
+    on a single window (nothing checks it: such pairs sat up to 2.3 m off in open cuttings)."""
+    from railtraj.adjust.offsets import usable_offset
+
+    for r, t in (trajs := _chain({}, {})[1]).items():  # GNSS poor everywhere: nothing is fixed
+        trajs[r] = t.with_positions(t.xyz, np.full_like(t.sd, 5.0))
+    offsets, _, _ = _chain({4: -1.5}, statuses={0: "ok", 3: "ok"}, unique_every=1000)
+    offsets[4] = _few_votes(offsets[4], windows=windows)
+    offsets[6] = replace(offsets[6], info=dict(offsets[6].info, piecewise=dict(
+        offsets[6].info["piecewise"], windows=[[0.0] * 5] * windows)))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    for k in (4, 6):
+        assert out[k].status in (("ambiguous", "degenerate") if used else ("no_consensus", "ambiguous")), out[k].status
+        assert usable_offset(out[k], trajs) == used, (k, out[k].status, out[k].info.get("unused"))
