@@ -167,7 +167,7 @@ def main() -> None:
     ap.add_argument("--optimizer", default="spline")
     ap.add_argument("--pipeline", default="global", choices=["global", "multirun"])
     ap.add_argument("--size", type=float, default=1.0)
-    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry or scanner field, speed (factor), tile_size (m) or runs (count)")
+    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry, scanner or drift field (e.g. roughness=1), tunnel_length (factor), speed (factor), tile_size (m) or runs (count)")
     ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
