@@ -120,7 +120,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     """Offsets with each candidate pair resolved, moved to another alias or demoted, and one
     report row per candidate pair."""
     if not options.enabled:
-        return [_unless_one_window(_unless_few_votes(o)) for o in offsets], []
+        return [_unresolved_use(o) for o in offsets], []
     offsets = [on_travel_direction(o, trajectories) for o in offsets]
     out, report = list(offsets), []
     chains: dict[tuple[str, str], list[Pair]] = {}
@@ -152,13 +152,13 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                 u_best = pair.u0 + shift * pair.along
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
-            out[pair.index] = _unless_few_votes(out[pair.index])
+            out[pair.index] = _unresolved_use(out[pair.index])
             report.append(_report_row(pair.index, o, out[pair.index].status, verdict, shift, margin, pair.shift))
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
         demoted = _apply(out[k], 0.0, False, trajectories)
-        out[k] = _unless_few_votes(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
+        out[k] = _unresolved_use(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
         report.append(_report_row(k, out[k], out[k].status, "cycle not closed", before="ok"))
-    out = [_within_reach(_unless_one_window(_unless_few_votes(o)), options) for o in out]  # (and those outside any chain)
+    out = [_within_reach(_unresolved_use(o), options) for o in out]  # (and those outside any chain)
     moved = sum(abs(r["shift_m"]) > 0.1 and r["status"] in ("ok", COARSE) for r in report)
     log.info("along-track: %d tile pairs with candidates, %d resolved (%d moved to another alias), %d left weak",
              len(report), sum(r["status"] == "ok" for r in report), moved,
@@ -344,7 +344,7 @@ def _vertex(f: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.clip(out, -0.5, 0.5)
 
 
-def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndarray | None = None
+def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndarray
                    ) -> tuple[list[tuple[float, float, str]], np.ndarray, np.ndarray]:
     """Bootstrapped fixing along one run pair, as in GNSS integer ambiguity resolution.
 
@@ -367,7 +367,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
       (``Pair.movable``; a flat profile's top sample is no alias).
 
     Fixed pairs then anchor the next round, until no pair can be fixed. ``walks`` is the drift
-    rate's wander per step (:func:`_rate_walks`; ``rate_walk`` everywhere if None). Returns, per pair, the
+    rate's wander per step (:func:`_rate_walks`). Returns, per pair, the
     chosen shift, its margin and ``resolved`` or ``ambiguous``; and the last round's predicted
     along-track offset (mean, variance) at every pair.
     """
@@ -436,7 +436,7 @@ def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
     step_mid = (s_all[1:] + s_all[:-1]) / 2
     around = np.abs(mid[None, :] - step_mid[:, None]) <= options.walk_radius  # (steps, rate pairs)
     counted = around.sum(axis=1) >= 5
-    local = np.nanmedian(np.where(around, q_near[None, :], np.nan)[counted], axis=1) if counted.any() else []
+    local = np.nanmedian(np.where(around, q_near[None, :], np.nan)[counted], axis=1)
     walks[1:][counted] = np.maximum(walks[1:][counted], np.sqrt(np.maximum(local, 0.0)))
     return walks
 
@@ -489,11 +489,11 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
 
 
 def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
-            walks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            walks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother).
 
     The state is the offset and its rate (per metre of run b's travel); the rate wanders as a
-    random walk of density ``walks`` per step (``rate_walk`` if None: the drift's bend as white noise, as in the
+    random walk of density ``walks`` per step (:func:`_rate_walks`: the drift's bend as white noise, as in the
     adjustment's smoothness), so the offset between two pairs follows the rate the pairs
     around them agree on, not just the mean of two. Observed at every pair: its measured rate
     (``rate_sd``), the offset as 0 +- the trajectories' sd, and its fixed candidate at fixed
@@ -508,7 +508,7 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
     n = len(chain)
     xf, pf = np.zeros((n, 2)), np.zeros((n, 2, 2))  # filtered
     xp, pp = np.zeros((n, 2)), np.zeros((n, 2, 2))  # predicted
-    q = (np.full(n, options.rate_walk) if walks is None else np.asarray(walks, float)) ** 2
+    q = np.asarray(walks, float) ** 2
     for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
         if i == 0:
             xp[i], pp[i] = np.zeros(2), np.diag([1e6, 1.0])
@@ -600,33 +600,38 @@ def _unchecked_fit(o: TileOffset) -> bool:
     return _degenerate_fit(o) and windows is not None and len(windows) <= 2
 
 
-def _unless_few_votes(o: TileOffset) -> TileOffset:
-    """A pair with too few votes (``few_votes``: the matcher checked it densely all the same)
-    unless the chain fixed its alias: then it is ``ok`` or ``coarse``. Else it is used across
-    and up only, as any unresolved pair, if its curve rests on two windows or more: on 48
-    simulated surveys 222 such pairs were 0.3 cm off there (median), 2.8 cm at most, one beyond
-    3 sd, and in bored tubes, where most pairs have few votes, leaving them out left the runs
-    up to 14 cm apart in height. On a single window it is ``no_consensus``, as before it was
-    checked: fitted from a peak of 2-4 votes, such pairs in open cuttings sat up to 2.3 m off
-    across and up (one pulled two runs 8.5 cm apart, 4 sd)."""
-    if "few_votes" not in o.info or o.status in ("ok", COARSE):
-        return o
-    if _windows(o) >= 2:
-        return replace(o, info=dict(o.info, demoted="too few votes, and the along-track chain could not fix its "
-                                                   "alias: across and up only"))
-    info = dict(o.info, demoted="too few votes on a single window, and the along-track chain could not fix its alias")
-    return replace(o, status="no_consensus", cov=np.full((3, 3), np.nan), ties=Ties.empty(o.run_a, o.run_b), info=info)
+def _unresolved_use(o: TileOffset) -> TileOffset:
+    """How a pair the chain did not fix enters the adjustment: across and up only, as its
+    ``ambiguous``/``degenerate`` status says, if its curve of offsets rests on two windows or more.
 
+    * On a single window nothing checks that window, and its sd is a floor: of 26 such
+      unresolved pairs on 48 simulated surveys, 4 were 3.2-8.7 cm off across or up while
+      claiming 1 cm (up to 8.7 sd); with two windows or more, 4 of 536 were beyond 3 sd (5.5 at
+      most). Such a pair keeps its status and is left unused (its covariance ``nan``).
+    * A pair with too few votes (``few_votes``: the matcher checked it densely all the same) is
+      the same: on two windows or more, 222 such pairs were 0.3 cm off across and up (median),
+      2.8 cm at most, one beyond 3 sd, and in bored tubes, where most pairs have few votes,
+      leaving them out left the runs up to 14 cm apart in height. On fewer (or none on record)
+      it is ``no_consensus``, as before it was checked: fitted from a peak of 2-4 votes, such
+      pairs in open cuttings sat up to 2.3 m off across and up (one pulled two runs 8.5 cm
+      apart, 4 sd).
 
-def _unless_one_window(o: TileOffset) -> TileOffset:
-    """An unresolved pair (``ambiguous``/``degenerate``: across and up only) left unused if its
-    curve rests on a single window: nothing checks that window, and its sd is a floor. Of 26
-    such pairs on 48 simulated surveys, 4 were 3.2-8.7 cm off across or up while claiming 1 cm
-    (up to 8.7 sd); with two windows or more, 4 of 536 were beyond 3 sd (5.5 at most)."""
-    if o.status not in ("ambiguous", "degenerate") or _windows(o) != 1:
+    ``ok`` and ``coarse`` pairs, fixed by the chain, are returned as they are."""
+    if o.status in ("ok", COARSE):
         return o
-    info = dict(o.info, unused="its curve rests on a single window: across and up unchecked")
-    return replace(o, cov=np.full((3, 3), np.nan), info=info)
+    windows = _windows(o)
+    if "few_votes" in o.info:
+        if windows >= 2:
+            return replace(o, info=dict(o.info, demoted="too few votes, and the along-track chain could not fix "
+                                                       "its alias: across and up only"))
+        info = dict(o.info, demoted="too few votes on a single window, and the along-track chain could not fix its "
+                                    "alias")
+        return replace(o, status="no_consensus", cov=np.full((3, 3), np.nan), ties=Ties.empty(o.run_a, o.run_b),
+                       info=info)
+    if o.status in ("ambiguous", "degenerate") and windows == 1:
+        info = dict(o.info, unused="its curve rests on a single window: across and up unchecked")
+        return replace(o, cov=np.full((3, 3), np.nan), info=info)
+    return o
 
 
 def _windows(o: TileOffset) -> int:
