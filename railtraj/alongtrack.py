@@ -153,7 +153,8 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
                 at = u_best if (u_best - m) ** 2 <= 4.0 * (v + pair.sd**2) else m
                 out[pair.index] = _at_predicted(out[pair.index], pair.u0, pair.along, at, v, trajectories)
             out[pair.index] = _unresolved_use(out[pair.index])
-            report.append(_report_row(pair.index, o, out[pair.index].status, verdict, shift, margin, pair.shift))
+            report.append(_report_row(pair.index, o, out[pair.index].status, verdict, shift, margin, pair.shift,
+                                      predicted=(m, v)))
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
         demoted = _apply(out[k], 0.0, False, trajectories)
         out[k] = _unresolved_use(replace(demoted, info=dict(demoted.info, demoted="a triangle of runs does not close")))
@@ -167,15 +168,46 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
 
 
 def _report_row(index: int, o: TileOffset, status: str, verdict: str, shift: float = 0.0, margin: float = 0.0,
-                candidate_shifts: np.ndarray | None = None, before: str | None = None) -> dict:
+                candidate_shifts: np.ndarray | None = None, before: str | None = None,
+                predicted: tuple[float, float] | None = None) -> dict:
     """One row of the along-track report (metrics.json ``adjustment.alongtrack``): the pair's row
     in offsets.csv (``pair``), its runs and tiles, its status before and after, the verdict and
-    the chosen shift, its margin and the candidates' shifts."""
+    the chosen shift, its margin and the candidates' shifts; for a pair in a chain, the chain's
+    along-track offset there (run b's direction of travel) and its sd (``predicted_m``,
+    ``predicted_sd_m``)."""
     shifts = np.zeros(0) if candidate_shifts is None else candidate_shifts
-    return {"pair": index, "run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
-            "status_before": o.status if before is None else before, "status": status, "verdict": verdict,
-            "shift_m": round(shift, 3), "margin": round(min(margin, 1e6), 1),
-            "candidates": len(shifts), "candidate_shifts_m": np.round(shifts, 2).tolist()}
+    row = {"pair": index, "run_a": o.run_a, "run_b": o.run_b, "tile_a": o.tile_a, "tile_b": o.tile_b,
+           "status_before": o.status if before is None else before, "status": status, "verdict": verdict,
+           "shift_m": round(shift, 3), "margin": round(min(margin, 1e6), 1),
+           "candidates": len(shifts), "candidate_shifts_m": np.round(shifts, 2).tolist()}
+    if predicted is not None:
+        row.update(predicted_m=round(float(predicted[0]), 3), predicted_sd_m=round(float(np.sqrt(predicted[1])), 3))
+    return row
+
+
+def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin: float) -> str | None:
+    """A note (and a warning) when a chain puts two runs further apart along the track (2 sd) than
+    the matcher searched: its window (``matcher.max_misalignment``) or the tiles' crop
+    (``pipeline.max_misalignment_m``, ``crop_margin``). There no pair can have been matched at its
+    true offset, only at an alias inside the window, and the chain leaves such pairs unresolved.
+    On a simulated survey whose runs drifted 2.5 m (4 m apart), a run's pairs stayed unresolved
+    over 200 m and the runs 1.26 m apart; 60 surveys of drifts up to 1.5 m reached 2.6 m at most."""
+    rows = [r for r in report if "predicted_m" in r]
+    if not rows:
+        return None
+    reach = np.array([abs(r["predicted_m"]) + 2.0 * r["predicted_sd_m"] for r in rows])
+    window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
+    k = int(np.argmax(reach - window))
+    if reach[k] <= window[k]:
+        return None
+    worst, suggested = rows[k], np.ceil(2.0 * (reach.max() + 0.5)) / 2.0
+    note = (f"along-track: runs {worst['run_a']} and {worst['run_b']} are {abs(worst['predicted_m']):.2f} +- "
+            f"{worst['predicted_sd_m']:.2f} m apart along the track at tile {worst['tile_a']}, but tile pairs were "
+            f"searched within {window[k]:g} m: there they could not be matched at their true offset and stay "
+            f"unresolved; run again with matcher.max_misalignment={suggested:g} "
+            f"pipeline.max_misalignment_m={suggested:g}")
+    log.warning(note)
+    return note
 
 
 def _cycle_breaks(offsets: list[TileOffset], options: AlongTrackOptions) -> list[int]:
@@ -676,7 +708,7 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
     if not resolved:
         if o.status == "ok":
             info["demoted"] = "along-track alias not resolved jointly"
-        window = float(o.info.get("search_window", 3.0))
+        window = float(o.info.get("window", 3.0))
         return replace(o, status="ambiguous" if o.status == "ok" else o.status,
                        cov=fit_cov + window**2 * np.outer(axis, axis),
                        ties=Ties.empty(o.run_a, o.run_b), info=info)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
+from railtraj.alongtrack import AlongTrackOptions, beyond_reach_note, resolve_along_track
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
 from railtraj.data import (
@@ -178,12 +178,13 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     resolved, alongtrack = resolve_along_track([r.offset for r in results], trajectories, options.alongtrack)
     results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
-    direction_note = fitted_direction_note(resolved) if options.alongtrack.enabled else None
+    along_notes = [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, options.max_misalignment_m)
+                   ] if options.alongtrack.enabled else []
     clock["alongtrack"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories)
-    notes = survey_notes + notes + ([direction_note] if direction_note else [])
+    notes = survey_notes + notes + [n for n in along_notes if n]
     clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
+from railtraj.alongtrack import AlongTrackOptions, beyond_reach_note, resolve_along_track
 from railtraj.data import Ties, TileOffset, Trajectory
 
 PORTALS = (50.0, 350.0)
@@ -451,3 +451,29 @@ def test_an_unresolved_pair_is_used_across_and_up_only_on_two_windows_or_more(wi
     for k in (4, 6):
         assert out[k].status in (("ambiguous", "degenerate") if used else ("no_consensus", "ambiguous")), out[k].status
         assert usable_offset(out[k], trajs) == used, (k, out[k].status, out[k].info.get("unused"))
+
+
+@pytest.mark.parametrize("peak", [0.6, 3.6])
+def test_runs_further_apart_than_the_matcher_searched_are_reported(monkeypatch, peak):
+    """Where the runs drifted 3.6 m apart along the track, the matcher (searching within 3 m)
+    can only have matched the pairs at an alias inside its window; the chain, which follows the
+    drift from the portals by the pairs' rates, puts the runs beyond it there (2 sd). That is
+    said, with the options to change; none of those pairs is fixed on its alias."""
+    along = lambda s: peak * np.sin(np.pi * np.clip((np.asarray(s, float) - PORTALS[0]) / (PORTALS[1] - PORTALS[0]), 0, 1)) ** 2  # noqa: E731
+    monkeypatch.setattr(sys.modules[__name__], "_true_along", along)
+    a, b = _run("run_a", 10.0, 300000.0, False, 0.5), _run("run_b", 12.0, 300600.0, True, 0.5)
+    s = np.arange(60.0, 345.0, 25.0)
+    inside = [-1.5 * np.ceil(max(along(x) - 2.9, 0.0) / 1.5) for x in s]  # the alias the matcher could see
+    offsets = [_pair(x, alias, "ambiguous", k % 3 == 0, a, b) for k, (x, alias) in enumerate(zip(s, inside, strict=True))]
+    out, report = resolve_along_track(offsets, {"run_a": a, "run_b": b}, AlongTrackOptions())
+    note = beyond_reach_note(report, out, 3.0)
+    if peak < 3.0:
+        assert note is None
+        return
+    assert note is not None and "matcher.max_misalignment=" in note and "pipeline.max_misalignment_m=" in note
+    suggested = float(note.rsplit("=", 1)[1])
+    assert suggested >= peak
+    for k, o in enumerate(out):
+        if o.status in ("ok", "coarse"):
+            assert abs(o.d[0] - along(s[k])) < 0.01, (k, o.status, o.d[0] - along(s[k]))
+    assert any(inside)  # the test is about pairs the matcher could not see at the truth
