@@ -182,3 +182,25 @@ def test_past_the_widened_span_the_corrected_sd_fades_out_not_stops():
     for r in trajs:
         np.testing.assert_array_equal(out[r].xyz, corrected[r].xyz)
     np.testing.assert_array_equal(out["run_b"].sd, corrected["run_b"].sd)
+
+
+def _weak(o: TileOffset) -> TileOffset:
+    """The pair as an ``ambiguous`` one: no ties, its offset known across and up only."""
+    cov = np.diag([3.0, 0.005, 0.005]) ** 2
+    return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, o.d, cov, o.inliers, "ambiguous", Ties.empty(o.run_a, o.run_b),
+                      dict(o.info, piecewise={"axis": [1.0, 0.0, 0.0]}))
+
+
+def test_weak_pairs_corroborate_a_disagreement_but_never_convict_alone():
+    """Near a portal a biased run is often seen by one sure tile pair and a few ambiguous ones,
+    whose across and up are still right. The sure one alone convicts nobody; with the ambiguous
+    ones beside it, the biased run is blamed (alone: it is at odds with both other runs). The
+    ambiguous ones without a sure one convict nobody."""
+    trajs, offsets, _ = _survey()
+    trap = {(a, b, t) for a, b in (("run_a", "run_b"), ("run_a", "run_c")) for t in ("100", "125")}
+    weak = [_weak(o) if (o.run_a, o.run_b, o.tile_a) in trap and (o.run_b, o.tile_a) != ("run_b", "125") else o
+            for o in offsets]
+    summary = check_reported_sd(trajs, weak).summary
+    assert set(summary["runs"]) == {"run_a"} and summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
+    all_weak = [_weak(o) if (o.run_a, o.run_b, o.tile_a) in trap else o for o in offsets]
+    assert check_reported_sd(trajs, all_weak).summary["runs"] == {}
