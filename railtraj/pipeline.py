@@ -178,8 +178,9 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     resolved, alongtrack = resolve_along_track([r.offset for r in results], trajectories, options.alongtrack)
     results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
-    along_notes = [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, options.max_misalignment_m)
-                   ] if options.alongtrack.enabled else []
+    along_notes = []
+    if options.alongtrack.enabled:
+        along_notes = [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, options.max_misalignment_m)]
     clock["alongtrack"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -9,7 +9,8 @@ and the result claims 2 cm either way.
 The runs' ties measure ``error_a - error_b`` directly. Under the reported sd that difference has
 covariance ``S_a + S_b + C_obs``; a tie or tile offset beyond ``max_z`` standard deviations says
 one of the two sds is wrong, when another tile pair nearby says so too (one aliased pair convicts
-nobody; a weak pair, across and up only, may be that other pair, never the only one). The run to blame is the one at odds with most of the runs it meets near there: with
+nobody; a weak pair, across and up only, may be that other pair, never the only one). The run to
+blame is the one at odds with most of the runs it meets near there: with
 three or more runs the run whose GNSS is biased disagrees with all others while the others agree;
 with two runs both are blamed. A blamed run's covariance is widened by the disagreement it shows,
 in the track frame (along, across, up), over ``reach_m`` metres around it, so the adjustment
