@@ -165,7 +165,7 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
                          offset_covariance(o)[None], np.array([k]), np.array([o.status in WEAK_STATUSES])))
     if not rows:
         return None
-    return _Observations(*(np.concatenate([r[i] for r in rows]) for i in range(9)))
+    return _Observations(*(np.concatenate(column) for column in zip(*rows, strict=True)))
 
 
 def _z(obs: _Observations, reported: list[np.ndarray], max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
