@@ -31,6 +31,7 @@ from railtraj.georef import PoseCache
 from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
 from railtraj.plugins import registry
 from railtraj.sim import generate, load_truth
+from railtraj.sim.drift import Multipath
 from railtraj.sim.scenarios import Scenario, get_scenario
 from railtraj.sim.score import offset_errors, position_error, score_trajectories, tie_errors
 
@@ -47,8 +48,10 @@ def survey_for(scenario: str, seed: int, size: float, vary: tuple[str, ...] = ()
 def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
     """The scenario with ``key=value`` changes: a field of its geometry, scanner or drift,
     ``tunnel_length`` (every section but the cuttings times the value), ``speed``
-    (every run's speed times the value), ``tile_size`` (m) or ``runs`` (that many passes, the
-    catalogue's repeated in turn, 600 s apart), to try surveys the catalogue does not hold."""
+    (every run's speed times the value), ``tile_size`` (m), ``runs`` (that many passes, the
+    catalogue's repeated in turn, 600 s apart) or ``multipath`` (``run_b`` or ``run_b@1``: that
+    run gets portal_trap's GNSS multipath bias at its first, or n-th, portal), to try surveys the
+    catalogue does not hold."""
     for item in vary:
         key, value = item.split("=")
         if key == "speed":
@@ -60,6 +63,10 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
             scn = replace(scn, runs=tuple(replace(base[k % len(base)], run_id=f"run_{chr(ord('a') + k)}",
                                                   start_time=base[0].start_time + 600.0 * k)
                                           for k in range(int(value))))
+        elif key == "multipath":
+            run, _, portal = value.partition("@")
+            bias = Multipath(run, portal=int(portal or 0), bias=(0.3, -0.25, 0.1))
+            scn = replace(scn, drift=replace(scn.drift, multipath=(*scn.drift.multipath, bias)))
         elif key == "tunnel_length":
             scn = replace(scn, geometry=replace(scn.geometry, sections=tuple(
                 (k, n if k == "cutting" else n * float(value)) for k, n in scn.geometry.sections)))
@@ -70,7 +77,8 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
         elif hasattr(scn.scanner, key):
             scn = replace(scn, scanner=replace(scn.scanner, **{key: type(getattr(scn.scanner, key))(value)}))
         else:
-            raise SystemExit(f"--vary {item}: not a geometry, scanner or drift field, nor tunnel_length, speed, tile_size or runs")
+            raise SystemExit(f"--vary {item}: not a geometry, scanner or drift field, nor tunnel_length, speed, "
+                             "tile_size, runs or multipath")
     return scn
 
 

@@ -175,7 +175,10 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in results), len(results))
 
     t0 = time.perf_counter()
-    resolved, alongtrack = resolve_along_track([r.offset for r in results], trajectories, options.alongtrack)
+    # the chains are anchored where the runs report a small sd (portals): where the matcher's
+    # pairs show a run's GNSS biased there, that anchor is as loose as the check widens it
+    before_chains = check_reported_sd(trajectories, [r.offset for r in results], replace(options.sd_check, along=False))
+    resolved, alongtrack = resolve_along_track([r.offset for r in results], before_chains.trajectories, options.alongtrack)
     results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
     along_notes = []
@@ -192,7 +195,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
     offsets = [r.offset for r in results]
     # the optimizer weighs the runs by their sd: widen it first where the runs show it lies
-    checked = check_reported_sd(trajectories, offsets, options.sd_check)
+    checked = check_reported_sd(trajectories, offsets, options.sd_check, earlier=before_chains)
     notes += checked.summary["notes"]
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0

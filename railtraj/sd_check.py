@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from railtraj.adjust.offsets import WEAK_STATUSES, offset_covariance, usable_off
 from railtraj.data import TileOffset, Trajectory
 
 log = logging.getLogger(__name__)
+
+#: variance (m^2) given to a direction an observation is not compared in
+UNSEEN_VAR = 1e4
 
 
 @dataclass
@@ -45,6 +48,9 @@ class SdCheckOptions:
     fade_m: float = 25.0       # ... beyond which its corrected sd still fades out over this many metres
     tie_sd_m: float = 0.01     # sd of one tie, per axis (as the spline optimizer's tie_sigma_m)
     max_weak_sd_m: float = 0.3  # directions of an offset with larger sd are not compared (as the optimizer's)
+    # False: across and up only, for tile pairs that may sit on an along-track alias (the matcher's,
+    # before the chains); a bias seen across is then taken to be as large along the track
+    along: bool = True
 
 
 @dataclass(frozen=True)
@@ -78,13 +84,21 @@ class SdCheck:
 
 
 def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
-                      options: SdCheckOptions | None = None) -> SdCheck:
-    """Find where the runs' ties and tile offsets convict a run's reported sd, and widen it there."""
+                      options: SdCheckOptions | None = None, earlier: SdCheck | None = None) -> SdCheck:
+    """Find where the runs' ties and tile offsets convict a run's reported sd, and widen it there.
+
+    ``earlier``: a check already made on other tile pairs, or in fewer directions (the matcher's
+    pairs, before the along-track chains, across and up): where this one finds nothing, what that
+    one found stands."""
     options = options or SdCheckOptions()
+    if earlier is not None:
+        return _where_silent(check_reported_sd(trajectories, offsets, options), earlier)
     summary = {"enabled": options.enabled, "observations": 0, "disagreeing": 0, "runs": {}, "notes": []}
     obs = _pool(trajectories, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
+    if not options.along:
+        obs = _across_and_up(obs, trajectories)
     reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
                                                                             (obs.run_b, obs.time_b))]
     z, d = _z(obs, reported, options.max_weak_sd_m)
@@ -112,7 +126,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         as_a, as_b = sized & (obs.run_a == run), sized & (obs.run_b == run)
         seen = np.concatenate([d[as_a], d[as_b]])
         extra, track_sd, margin[run] = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen,
-                                                 options.reach_m, options.fade_m)
+                                                 options.reach_m, options.fade_m, as_along=not options.along)
         widening[run] = extra
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, extra))
         changed = np.any(track_sd > 0, axis=1)
@@ -130,6 +144,37 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         log.warning(note)
         summary["notes"].append(note)
     return SdCheck(out, widening, summary, margin)
+
+
+def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
+    """``check``, with each stretch of a run that ``earlier`` widened (with its fading margin) kept
+    where ``check`` widened nothing there. A check on sure pairs measures every direction, so where
+    it saw the bias too its widening stands; but the along-track chains may have demoted the pairs
+    that showed a bias, and weak pairs alone convict nobody."""
+    widening, margin, out = dict(check.widening), dict(check.margin), dict(check.trajectories)
+    notes = list(check.summary["notes"])
+    for run, extra in earlier.widening.items():
+        theirs = extra + earlier.margin.get(run, 0.0)
+        stretch = _label(np.einsum("nii->n", theirs) > 0)
+        mine = widening.get(run)
+        seen_again = np.unique(stretch[(stretch > 0) & (np.einsum("nii->n", mine) > 0)]) if mine is not None else []
+        keep = (stretch > 0) & ~np.isin(stretch, seen_again)
+        if not keep.any():
+            continue
+        k = keep[:, None, None]
+        widening[run] = np.where(k, extra, 0.0) + (0.0 if mine is None else mine)
+        margin[run] = np.where(k, earlier.margin.get(run, 0.0), 0.0) + margin.get(run, 0.0)
+        traj = out[run]  # where ``check`` is silent, its sd is the reported one
+        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, np.where(k, extra, 0.0)))
+        notes += [n for n in earlier.summary["notes"] if n.startswith(f"run {run}:")]
+    summary = dict(check.summary, earlier=earlier.summary, notes=notes)
+    return SdCheck(out, widening, summary, margin)
+
+
+def _label(flag: np.ndarray) -> np.ndarray:
+    """Number (1, 2, ...) of the run of consecutive True that each True belongs to; 0 where False."""
+    starts = flag & ~np.concatenate([[False], flag[:-1]])
+    return np.where(flag, np.cumsum(starts), 0)
 
 
 def widened_sd(sd: np.ndarray, widening: np.ndarray) -> np.ndarray:
@@ -166,6 +211,17 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
     if not rows:
         return None
     return _Observations(*(np.concatenate(column) for column in zip(*rows, strict=True)))
+
+
+def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory]) -> _Observations:
+    """The observations with the along-track direction (run a's, where it was observed) left out."""
+    cov = obs.cov.copy()
+    for run, traj in trajectories.items():
+        m = obs.run_a == run
+        if m.any():
+            along = _track_frame(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
+            cov[m] += UNSEEN_VAR * np.einsum("ni,nj->nij", along, along)
+    return replace(obs, cov=cov)
 
 
 def _z(obs: _Observations, reported: list[np.ndarray], max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -251,7 +307,7 @@ def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m:
 
 
 def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: float,
-              fade_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              fade_m: float, as_along: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The covariance (n_epochs, 3, 3) that makes the run's sd cover the disagreements ``seen`` at
     ``times``, within ``reach_m`` metres travelled, and its sd (n_epochs, 3) along the track, across
     it and up. Kept in the track frame so that a bias across the track does not free the run along
@@ -263,6 +319,8 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     bins = np.floor(traj.travelled()).astype(np.int64)
     at = np.clip(np.searchsorted(traj.time, times), 0, len(traj.time) - 1)
     size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
+    if as_along:  # not compared along the track: a GNSS bias is as likely along as across
+        size[:, 0] = np.maximum(size[:, 0], size[:, 1])
     track_sd = np.zeros((bins[-1] + 1, 3))
     np.maximum.at(track_sd, bins[at], size)
     track_sd = maximum_filter1d(track_sd, size=2 * int(np.ceil(reach_m)) + 1, axis=0, mode="constant")

@@ -204,3 +204,62 @@ def test_weak_pairs_corroborate_a_disagreement_but_never_convict_alone():
     assert set(summary["runs"]) == {"run_a"} and summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
     all_weak = [_weak(o) if (o.run_a, o.run_b, o.tile_a) in trap else o for o in offsets]
     assert check_reported_sd(trajs, all_weak).summary["runs"] == {}
+
+
+def _moved_along(o: TileOffset, metres: float) -> TileOffset:
+    """The pair on an along-track alias ``metres`` off (run b's ties and offset moved along x)."""
+    t = o.ties
+    ties = Ties(t.run_a, t.run_b, t.time_a, t.time_b, t.xyz_a, t.xyz_b - [metres, 0.0, 0.0], t.weight)
+    return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, o.d + [metres, 0.0, 0.0], o.cov, o.inliers, o.status, ties, o.info)
+
+
+def test_compared_across_and_up_only_pairs_on_an_along_track_alias_convict_nobody():
+    """Before the along-track chains the matcher's ok pairs may sit on an alias (3.0 m off where
+    ribs and sleepers repeat together). Two neighbouring ones convict both their runs when the
+    check compares along the track; across and up only, nobody. A bias across the track is still
+    found, and the run's sd is widened along the track as much: a GNSS bias has any direction."""
+    trajs, offsets, _ = _survey(biased=False)
+    aliased = [_moved_along(o, 3.0) if (o.run_a, o.run_b, o.tile_a) in {("run_a", "run_b", "200"), ("run_a", "run_b", "225")}
+               else o for o in offsets]
+    assert set(check_reported_sd(trajs, aliased).summary["runs"]) == {"run_a", "run_b"}
+    assert check_reported_sd(trajs, aliased, SdCheckOptions(along=False)).summary["runs"] == {}
+    trajs, offsets, _ = _survey()
+    checked = check_reported_sd(trajs, offsets, SdCheckOptions(along=False))
+    assert set(checked.summary["runs"]) == {"run_a"}
+    widened = checked.summary["runs"]["run_a"]["widened_sd_m"]
+    assert widened["along"] == widened["across"] >= 0.8 * BIAS
+
+
+def test_a_later_check_keeps_what_an_earlier_one_found_where_it_finds_nothing():
+    """The chains may demote the sure pairs that showed a run's bias near its portal (their
+    along-track alias could not be fixed), and weak pairs alone convict nobody: checked after the
+    check made on the matcher's pairs, the run stays widened as that check found. Where the later
+    check's sure pairs convict, they measured every direction: their widening stands (the earlier
+    one took the bias as large along the track as across, and freed the runs along it: 4.3 -> 6.6
+    cm at most on nine simulated portal surveys)."""
+    trajs, offsets, _ = _survey()
+    earlier = check_reported_sd(trajs, offsets, SdCheckOptions(along=False))
+    trap = {("run_a", "run_b", t) for t in ("100", "125")} | {("run_a", "run_c", t) for t in ("100", "125")}
+    demoted = [_weak(o) if (o.run_a, o.run_b, o.tile_a) in trap else o for o in offsets]
+    assert check_reported_sd(trajs, demoted).summary["runs"] == {}
+    later = check_reported_sd(trajs, demoted, earlier=earlier)
+    np.testing.assert_array_equal(later.widening["run_a"], earlier.widening["run_a"])
+    np.testing.assert_array_equal(later.trajectories["run_a"].sd, earlier.trajectories["run_a"].sd)
+    assert later.summary["notes"] == earlier.summary["notes"]
+    # run c's GNSS biased elsewhere, seen by sure pairs after the chains: widened too
+    shifted = [_moved_across(o, 0.3) if o.run_b == "run_c" and o.tile_a in ("225", "250") else o for o in demoted]
+    both = check_reported_sd(trajs, shifted, earlier=earlier)
+    assert set(both.widening) == {"run_a", "run_c"}
+    assert len(both.summary["notes"]) == len(earlier.summary["notes"]) + 1
+    # the sure pairs kept: their own widening, not along the track as across
+    sure = check_reported_sd(trajs, offsets, earlier=earlier)
+    alone = check_reported_sd(trajs, offsets)
+    np.testing.assert_array_equal(sure.widening["run_a"], alone.widening["run_a"])
+    assert sure.summary["runs"]["run_a"]["widened_sd_m"]["along"] < 0.05
+
+
+def _moved_across(o: TileOffset, metres: float) -> TileOffset:
+    """The pair with run b's GNSS ``metres`` off across the track (y) where it was seen."""
+    t = o.ties
+    ties = Ties(t.run_a, t.run_b, t.time_a, t.time_b, t.xyz_a, t.xyz_b + [0.0, metres, 0.0], t.weight)
+    return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, o.d - [0.0, metres, 0.0], o.cov, o.inliers, o.status, ties, o.info)
