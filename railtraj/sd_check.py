@@ -16,6 +16,12 @@ with two runs both are blamed. A blamed run's covariance is widened by the disag
 in the track frame (along, across, up), over ``reach_m`` metres around it, so the adjustment
 follows the runs that agree and the corrected run's posterior sd says how little its own GNSS
 was worth there.
+
+The pipeline checks twice. Before the along-track chains, on the matcher's pairs, across the track
+and up only (``along=False``: a pair may sit on an alias along it), so that the chains are not
+anchored on a run's biased portal; a bias seen across is taken to be as large along. After the
+chains, in every direction on the pairs they kept, with the first check's finding kept where this
+one finds nothing (``earlier``).
 """
 
 from __future__ import annotations
