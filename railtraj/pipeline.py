@@ -177,11 +177,12 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     t0 = time.perf_counter()
     # the chains are anchored where the runs report a small sd (portals): where the matcher's
     # pairs show a run's GNSS biased there, that anchor is as loose as the check widens it
+    matched = [r.offset for r in results]
     before_chains = None
     if options.alongtrack.enabled:
-        before_chains = check_reported_sd(trajectories, [r.offset for r in results], replace(options.sd_check, along=False))
+        before_chains = check_reported_sd(trajectories, matched, replace(options.sd_check, along=False))
     anchors = trajectories if before_chains is None else before_chains.trajectories
-    resolved, alongtrack = resolve_along_track([r.offset for r in results], anchors, options.alongtrack)
+    resolved, alongtrack = resolve_along_track(matched, anchors, options.alongtrack)
     results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
     ok = [r.offset for r in results if r.offset.ok]
     along_notes = []

@@ -157,30 +157,24 @@ def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
     where ``check`` widened nothing there. A check on sure pairs measures every direction, so where
     it saw the bias too its widening stands; but the along-track chains may have demoted the pairs
     that showed a bias, and weak pairs alone convict nobody."""
+    from scipy.ndimage import label
+
     widening, margin, out = dict(check.widening), dict(check.margin), dict(check.trajectories)
     notes = list(check.summary["notes"])
     for run, extra in earlier.widening.items():
-        theirs = extra + earlier.margin.get(run, 0.0)
-        stretch = _label(np.einsum("nii->n", theirs) > 0)
-        mine = widening.get(run)
-        seen_again = np.unique(stretch[(stretch > 0) & (np.einsum("nii->n", mine) > 0)]) if mine is not None else []
-        keep = (stretch > 0) & ~np.isin(stretch, seen_again)
+        mine = widening.get(run, np.zeros_like(extra))
+        stretch = label(np.einsum("nii->n", extra + earlier.margin.get(run, 0.0)) > 0)[0]
+        keep = (stretch > 0) & ~np.isin(stretch, stretch[np.einsum("nii->n", mine) > 0])
         if not keep.any():
             continue
-        k = keep[:, None, None]
-        widening[run] = np.where(k, extra, 0.0) + (0.0 if mine is None else mine)
-        margin[run] = np.where(k, earlier.margin.get(run, 0.0), 0.0) + margin.get(run, 0.0)
+        kept = np.where(keep[:, None, None], extra, 0.0)
+        widening[run] = mine + kept
+        margin[run] = margin.get(run, 0.0) + np.where(keep[:, None, None], earlier.margin.get(run, 0.0), 0.0)
         traj = out[run]  # where ``check`` is silent, its sd is the reported one
-        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, np.where(k, extra, 0.0)))
+        out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, kept))
         notes += [n for n in earlier.summary["notes"] if n.startswith(f"run {run}:")]
     summary = dict(check.summary, earlier=earlier.summary, notes=notes)
     return SdCheck(out, widening, summary, margin)
-
-
-def _label(flag: np.ndarray) -> np.ndarray:
-    """Number (1, 2, ...) of the run of consecutive True that each True belongs to; 0 where False."""
-    starts = flag & ~np.concatenate([[False], flag[:-1]])
-    return np.where(flag, np.cumsum(starts), 0)
 
 
 def widened_sd(sd: np.ndarray, widening: np.ndarray) -> np.ndarray:
