@@ -40,6 +40,9 @@ from railtraj.matching.threads import map_threads
 
 #: per-window sd floors (m) along, across, up: what a window estimate scatters by at best
 WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])
+#: a window's along-track profile must rise from its valley by this many times its noise
+#: (:func:`valley_significance`); flatter, the window has no edges and gives no offset
+MIN_VALLEY = 3.0
 
 
 @dataclass(frozen=True)
@@ -158,7 +161,15 @@ def along_coordinates(tree: cKDTree, axis: np.ndarray) -> np.ndarray:
 
 def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
                   tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
-    """Mean truncated squared distance to the reference points of ``pts + d + t axis`` per t.
+    """Mean truncated squared distance to the reference points of ``pts + d + t axis`` per t:
+    the mean over its informative points of :func:`along_costs`."""
+    return along_costs(tree, pts, d, axis, ts, tau, tree_along).mean(axis=1)
+
+
+def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
+                tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
+    """Truncated squared distance to the reference points of ``pts + d + t axis``, (len(ts), m)
+    for the m informative points.
 
     Only the half of the points whose distance changes most over ``ts`` count: points on plain
     walls change little (they slide along themselves) and only add noise.
@@ -190,8 +201,36 @@ def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarra
         for k, t in enumerate(ts):  # a few dozen shifts, each vectorised over all neighbours
             cost[k, owner[starts]] = np.minimum(np.minimum.reduceat(nn2 - 2.0 * t * along + t * t, starts), tau * tau)
     spread = cost.std(axis=0)
-    informative = spread >= np.median(spread)
-    return cost[:, informative].mean(axis=1)
+    return cost[:, spread >= np.median(spread)]
+
+
+def valley_significance(ts: np.ndarray, costs: np.ndarray, groups: int = 8) -> float:
+    """How surely the profile of ``costs`` (:func:`along_costs`) rises from a valley over ``ts``:
+    its rise at the ends of the range (of the parabola fitted to the whole profile, from the
+    centre) over the larger of two noises the rise must stand out of:
+
+    * the scan lines' ripple: two runs' profiles pass each other every profile spacing, so
+      the mean profile ripples; its sample-to-sample scatter (RMS step / sqrt 2);
+    * the points' own sampling: the standard error of the rise over ``groups`` interleaved
+      subsets of the points. Where nothing has edges, where points fall makes the profile
+      undulate slowly, differently in each subset (on a randomly sampled plain tube the
+      ripple alone made such an undulation 10 times its scatter).
+
+    A window with edges (ribs, sleepers, brackets) scores tens. A window with none (a
+    slab-track circular section, a platform wall) has no valley: its lowest sample is anywhere
+    in the range. On the simulated mixed, commensurate and tube surveys such windows were 4-41
+    cm off the truth (mixed 185: two of them put an ``ok`` pair 6.7 cm off).
+    """
+    G = np.vander(ts - ts.mean(), 3, increasing=True)
+    half = 0.5 * np.ptp(ts)
+    members = np.arange(costs.shape[1]) % groups
+    means = np.column_stack([costs.mean(axis=1)] + [costs[:, members == g].mean(axis=1) for g in range(groups)])
+    rises = np.linalg.lstsq(G, means, rcond=None)[0][2] * half**2
+    profile = means[:, 0]
+    ripple = np.sqrt(np.mean(np.diff(profile) ** 2) / 2)
+    sampling = rises[1:].std(ddof=1) / np.sqrt(groups)
+    noise = max(ripple, sampling)
+    return float(rises[0] / noise) if noise > 0 else (np.inf if rises[0] > 0 else 0.0)
 
 
 def profile_minimum(ts: np.ndarray, cost: np.ndarray) -> float:
@@ -238,7 +277,10 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
-        t = profile_minimum(ts, along_profile(tree, pts, fit.d, axis, ts, tau, tree_along))
+        costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
+        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: no along-track offset here
+            return None
+        t = profile_minimum(ts, costs.mean(axis=1))
         return [float(s[inside].mean()), *(fit.d + t * axis)] if np.isfinite(t) else None
 
     rows = [row for row in map_threads(window, len(edges) - 1) if row is not None]
