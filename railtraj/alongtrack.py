@@ -629,7 +629,7 @@ def _unchecked_fit(o: TileOffset) -> bool:
     2 cm range noise one such pair, fixed on its own fit, sat 11.8 cm off claiming 2.0 cm.
     The chain does not fix it: it is observed where the chain predicts, across and up only."""
     windows = o.info["piecewise"].get("windows")
-    return _degenerate_fit(o) and windows is not None and len(windows) <= 2
+    return _degenerate_fit(o) and windows is not None and _along_windows(windows) <= 2
 
 
 def _unresolved_use(o: TileOffset) -> TileOffset:
@@ -667,9 +667,15 @@ def _unresolved_use(o: TileOffset) -> TileOffset:
 
 
 def _windows(o: TileOffset) -> int:
-    """How many windows the pair's curve of offsets has (-1 if it has none on record)."""
+    """How many windows the pair's curve of offsets has, across and up (-1 if it has none on record)."""
     windows = o.info.get("piecewise", {}).get("windows")
     return -1 if windows is None else len(windows)
+
+
+def _along_windows(windows: list) -> int:
+    """How many of a curve's windows found an along-track offset (their profile had a valley:
+    the sixth column, :class:`railtraj.matching.piecewise.Piecewise`)."""
+    return sum(1 for w in windows if len(w) < 6 or w[5] > 0)
 
 
 def _within_reach(o: TileOffset, options: AlongTrackOptions) -> TileOffset:

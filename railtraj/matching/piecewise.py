@@ -13,7 +13,8 @@ on. So the overlap is cut into windows of ``length`` metres along the track; eac
   was below zero on every simulated pair). Sliding the window's points along the track and
   measuring their distance to run a's raw points does see the edges: the along-track shift
   is the minimum of that profile (truncated squared distance, the informative half of the
-  points, parabola through the three lowest samples).
+  points, parabola through the three lowest samples). A window without edges has no
+  valley (:func:`valley_significance`) and gives no offset.
 
 A curve ``d(s) = c0 + c1 u + c2 u^2`` (``u = s - s_ref``; a parabola from 4 windows, a line
 from 2) through the window estimates is the result, ``c0`` the offset at the reference point
@@ -43,6 +44,8 @@ WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])
 #: a window's along-track profile must rise from its valley by this many times its noise
 #: (:func:`valley_significance`); flatter, the window has no edges and gives no offset
 MIN_VALLEY = 3.0
+#: variance (m^2) of the along-track offset of a curve none of whose windows found one
+UNKNOWN_VAR = 1e4
 
 
 @dataclass(frozen=True)
@@ -54,7 +57,7 @@ class Piecewise:
     origin: np.ndarray  # (3,) where s = 0
     s_ref: float  # along-track position of the reference point (median of the moving points)
     cov: np.ndarray  # (3, 3) covariance of d_ref
-    windows: np.ndarray  # (k, 5): s, dx, dy, dz, used (1/0) per window
+    windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1/0: its profile has a valley)
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
 
@@ -94,11 +97,12 @@ class Piecewise:
         return int(self.windows[:, 4].sum()) if len(self.windows) else 0
 
     def window_spread(self) -> float:
-        """RMS along-track distance (m) of every window, used or dropped, from the curve: how far
-        apart the windows were before the curve dropped the worst."""
-        if not len(self.windows):
+        """RMS along-track distance (m) of every window with an along-track offset, used or
+        dropped, from the curve: how far apart the windows were before the curve dropped the worst."""
+        found = self.windows[self.windows[:, 5] > 0] if len(self.windows) else self.windows
+        if not len(found):
             return 0.0
-        off = (self.windows[:, 1:4] - self._along(self.windows[:, 0])) @ self.axis
+        off = (found[:, 1:4] - self._along(found[:, 0])) @ self.axis
         return float(np.sqrt(np.mean(off**2)))
 
     def summary(self) -> dict:
@@ -250,7 +254,9 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
-    ``s``): rows ``s_mean, dx, dy, dz``; windows without enough points or a valley are left out.
+    ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
+    window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
+    keeps its across and up; its along-track value is point-to-plane's, which means nothing.
     A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
 
     The windows cover the central 99 % of the points along the track instead of all of them when
@@ -278,13 +284,13 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
-        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: no along-track offset here
-            return None
+        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only
+            return [float(s[inside].mean()), *fit.d, 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
-        return [float(s[inside].mean()), *(fit.d + t * axis)] if np.isfinite(t) else None
+        return [float(s[inside].mean()), *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 
     rows = [row for row in map_threads(window, len(edges) - 1) if row is not None]
-    return np.array(rows).reshape(-1, 4)
+    return np.array(rows).reshape(-1, 5)
 
 
 def _window_edges(s: np.ndarray, length: float, min_windows: int, min_length: float) -> np.ndarray:
@@ -302,7 +308,8 @@ def _filled(s: np.ndarray, edges: np.ndarray, min_points: int) -> int:
     return int((np.histogram(s, edges)[0] >= min_points).sum()) if len(edges) > 1 else 0
 
 
-def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.03) -> tuple:
+def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.03,
+              along: np.ndarray | None = None) -> tuple:
     """Smooth curve through window offsets: (coefs (3, 3), cov of the offset at ``s_ref``, used
     mask, resid sd along/across/up). Coefficients are world-frame, of ``(s - s_ref)^0, ^1, ^2``.
 
@@ -313,21 +320,33 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
     the worst first, while 3 or more remain (a tile pair left with 3 is not ``ok``: windows
     that disagree that much say the pair is unreliable). The sd per axis is the residual
     scatter, never below :data:`WINDOW_SD_FLOOR`.
+
+    ``along``: which windows found an along-track offset (default all); the others count across
+    and up only. ``used`` marks the windows the along-track curve rests on.
     """
     frame = track_frame(axis)
     s, d = windows[:, 0] - s_ref, windows[:, 1:4] @ frame.T  # track frame
-    used = np.ones(len(s), bool)
+    along = np.ones(len(s), bool) if along is None else np.asarray(along, bool)
+    used = along.copy()
     while used.sum() > 3:
         idx = np.flatnonzero(used)
         loo = np.array([abs(d[i, 0] - _predict(s[idx[idx != i]], d[idx[idx != i], 0], s[i])) for i in idx])
         if loo.max() <= reject:
             break
         used[idx[int(np.argmax(loo))]] = False
-    coef, G = _poly(s[used], d[used])
-    resid = d[used] - np.vander(s[used], 3, increasing=True) @ coef
-    sd = np.maximum(_scatter(resid, G), WINDOW_SD_FLOOR)
-    var_scale = float(np.linalg.inv(G.T @ G)[0, 0])  # s is relative to s_ref: the intercept
-    cov_track = np.diag(sd**2 * var_scale)
+    coef, sd, var_scale = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
+    # along from the windows that found it; across and up also from those that found none
+    for axes, rows in ((slice(0, 1), used), (slice(1, 3), used | ~along)):
+        if rows.any():
+            c, G = _poly(s[rows], d[rows, axes])
+            coef[:, axes] = c
+            sd[axes] = _scatter(d[rows, axes] - np.vander(s[rows], 3, increasing=True) @ c, G)
+            var_scale[axes] = float(np.linalg.inv(G.T @ G)[0, 0])  # s is relative to s_ref: the intercept
+        else:  # no window found the along-track offset: it is unknown
+            coef[0, axes] = d[:, axes].mean(axis=0)
+            var_scale[axes] = np.inf
+    sd = np.maximum(sd, WINDOW_SD_FLOOR)
+    cov_track = np.diag(np.minimum(sd**2 * var_scale, UNKNOWN_VAR))
     return coef @ frame, frame.T @ cov_track @ frame, used, sd
 
 
@@ -391,7 +410,7 @@ def _poly(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
     """Residual sd per axis (zero without degrees of freedom)."""
     dof = len(resid) - G.shape[1]
-    return np.sqrt((resid**2).sum(axis=0) / dof) if dof > 0 else np.zeros(3)
+    return np.sqrt((resid**2).sum(axis=0) / dof) if dof > 0 else np.zeros(resid.shape[1])
 
 
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
@@ -415,9 +434,10 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     if len(windows) == 0:
         return None
     s_ref = float(np.median(s))
-    coefs, cov, used, sd = fit_curve(windows, axis, s_ref)
-    table = np.column_stack([windows, used.astype(float)])
-    centres = windows[used, 0]
+    along = windows[:, 4] > 0
+    coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along)
+    table = np.column_stack([windows[:, :4], used, along]).astype(float)
+    centres = windows[used | ~along.any(), 0]
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
     return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd)

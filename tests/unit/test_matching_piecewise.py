@@ -41,6 +41,21 @@ def test_fit_curve_recovers_a_parabola_and_drops_a_window_on_an_alias():
     assert 0.004 < np.sqrt(cov[0, 0]) < 0.010 and sd[0] == pytest.approx(0.010)
 
 
+def test_fit_curve_takes_along_from_the_windows_that_found_it_and_across_and_up_from_all():
+    s = np.arange(-12.5, 12.6, 5.0)
+    coefs = np.array([[0.3, -0.2, 0.05], [0.008, -0.004, 0.001], [1e-4, -2e-4, 0.0]])
+    d = np.vander(s, 3, increasing=True) @ coefs
+    d[4:, 0] += np.array([0.07, -0.09])  # no valley: point-to-plane's along value, meaningless
+    got, cov, used, sd = fit_curve(np.column_stack([s, d]), AXIS, 0.0, along=[True] * 4 + [False] * 2)
+    assert used.tolist() == [True] * 4 + [False] * 2
+    np.testing.assert_allclose(got, coefs, atol=1e-9)
+    # along from 4 windows, across and up from 6: the intercept's variance follows
+    G4, G6 = (np.vander(s[:n], 3, increasing=True) for n in (4, 6))
+    np.testing.assert_allclose(np.diag(cov), sd**2 * [np.linalg.inv(G.T @ G)[0, 0] for G in (G4, G6, G6)])
+    none = fit_curve(np.column_stack([s, d]), AXIS, 0.0, along=[False] * 6)
+    assert not none[2].any() and none[1][0, 0] >= 1e4 and np.allclose(none[0][:, 1:], coefs[:, 1:])
+
+
 def test_fit_curve_degree_follows_the_windows():
     got, cov, used, _ = fit_curve(np.array([[2.0, 0.1, 0.2, 0.3]]), AXIS, 2.0)
     np.testing.assert_allclose(got, [[0.1, 0.2, 0.3], [0, 0, 0], [0, 0, 0]])
@@ -117,7 +132,7 @@ def test_window_spread_counts_the_windows_the_curve_dropped():
     coefs = np.array([[0.3, 0.1, 0.0], [0.002, 0.0, 0.0], [0.0, 0.0, 0.0]])
     d = np.vander(s, 3, increasing=True) @ coefs
     d[1, 0] += 0.10  # dropped: 10 cm along the track off the curve
-    windows = np.column_stack([s, d, [1, 0, 1, 1, 1]])
+    windows = np.column_stack([s, d, [1, 0, 1, 1, 1], np.ones(5)])
     fit = Piecewise(coefs, AXIS, np.zeros(3), 0.0, np.eye(3) * 1e-4, windows, (-10.0, 10.0), np.full(3, 0.01))
     assert fit.window_spread() == pytest.approx(0.10 / np.sqrt(5), rel=1e-9)
     assert fit.summary()["window_spread_m"] == fit.window_spread()
@@ -160,7 +175,7 @@ def test_ties_are_kept_only_where_the_curve_interpolates_its_windows():
     d[-1, 0] += 0.2  # the last window off the curve: dropped
     got, cov, used, sd = fit_curve(np.column_stack([s, d]), AXIS, 0.0)
     assert used.tolist() == [True, True, True, True, True, False]
-    windows = np.column_stack([s, d, used])
+    windows = np.column_stack([s, d, used, np.ones(len(s))])
     fit = Piecewise(got, AXIS, np.zeros(3), 0.0, cov, windows, (-15.0, 10.0), sd)
     along = np.array([-15.0, -12.5, 0.0, 7.5, 7.6, 10.0])
     covered = fit.covers(np.column_stack([along, np.zeros((6, 2))]))
@@ -184,8 +199,8 @@ def _scanned(x0: float, x1: float, seed: int, phase: float, features: bool = Tru
 def test_windows_without_edges_give_no_along_track_offset(phase):
     """Half the overlap ribbed, half a plain tube (a slab-track circular section), scanned on
     lines 5 cm apart: in the plain half the profile only ripples as the two runs' lines pass
-    each other, its lowest sample 8-16 cm off the truth. Those windows are left out, not
-    reported (on mixed 185 two of them put an ``ok`` pair 6.7 cm off)."""
+    each other, its lowest sample 8-16 cm off the truth. Those windows give across and up but
+    no along-track offset (on mixed 185 two of them put an ``ok`` pair 6.7 cm off)."""
     def run(seed: int, phase: float) -> np.ndarray:
         return np.concatenate([_scanned(0, 12, seed, phase), _scanned(12, 24, seed + 1, phase, features=False)])
 
@@ -194,9 +209,13 @@ def test_windows_without_edges_give_no_along_track_offset(phase):
     b_xyz = b_true - (d0 + (b_true[:, 0] - 12.0)[:, None] * g)
     fit = piecewise_fit(build_target(a_xyz), a_xyz, b_xyz, d0, length=3.0)
     x = fit.windows[:, 0] + fit.origin[0]
-    assert len(x) >= 4 and x.max() < 12.5  # windows in the ribbed half only
+    found = fit.windows[:, 5] > 0
+    assert found.sum() >= 4 and x[found].max() < 12.5 and x.max() > 20  # along in the ribbed half only
+    assert fit.n_used == found.sum()
     # each edge is placed only to the scan-line spacing: within half of it
-    np.testing.assert_allclose(fit.windows[:, 1], d0[0] + (x - 12.0) * g[0], atol=0.025)
+    np.testing.assert_allclose(fit.windows[found, 1], d0[0] + (x[found] - 12.0) * g[0], atol=0.025)
+    # the plain half still places run b across and up
+    np.testing.assert_allclose(fit.windows[~found, 2:4], np.tile(d0[1:], ((~found).sum(), 1)), atol=0.005)
 
 
 def test_valley_significance_separates_edges_from_a_plain_tube():
