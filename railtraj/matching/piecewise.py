@@ -14,7 +14,7 @@ on. So the overlap is cut into windows of ``length`` metres along the track; eac
   measuring their distance to run a's raw points does see the edges: the along-track shift
   is the minimum of that profile (truncated squared distance, the informative half of the
   points, parabola through the three lowest samples). A window without edges has no
-  valley (:func:`valley_significance`) and gives no offset.
+  valley (:func:`valley_significance`): it gives across and up, but no along-track offset.
 
 A curve ``d(s) = c0 + c1 u + c2 u^2`` (``u = s - s_ref``; a parabola from 4 windows, a line
 from 2) through the window estimates is the result, ``c0`` the offset at the reference point
