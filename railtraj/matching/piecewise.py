@@ -437,7 +437,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     along = windows[:, 4] > 0
     coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along)
     table = np.column_stack([windows[:, :4], used, along]).astype(float)
-    centres = windows[used | ~along.any(), 0]
+    centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
     return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd)
