@@ -222,8 +222,9 @@ def valley_significance(ts: np.ndarray, costs: np.ndarray, groups: int = 8) -> f
 
     A window with edges (ribs, sleepers, brackets) scores tens. A window with none (a
     slab-track circular section, a platform wall) has no valley: its lowest sample is anywhere
-    in the range. On the simulated mixed, commensurate and tube surveys such windows were 4-41
-    cm off the truth (mixed 185: two of them put an ``ok`` pair 6.7 cm off).
+    in the range (mixed 185: two such windows put an ``ok`` pair 6.7 cm off). On 462 windows of
+    simulated mixed, commensurate and tube surveys, a score of 3 left out 62 of the 69 windows
+    more than 3 cm off the truth, and 8 right to 2 cm.
     """
     G = np.vander(ts - ts.mean(), 3, increasing=True)
     half = 0.5 * np.ptp(ts)
