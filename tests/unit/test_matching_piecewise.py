@@ -225,3 +225,28 @@ def test_valley_significance_separates_edges_from_a_plain_tube():
         a, b = tunnel_xyz(-1, 6, 800, seed=0, features=features), tunnel_xyz(0, 5, 800, seed=1, features=features)
         costs = along_costs(reference_tree(a), b[::10], np.zeros(3), AXIS, ts, 0.05)
         assert expect(valley_significance(ts, costs)), (features, valley_significance(ts, costs))
+
+
+def test_windows_are_halved_where_only_part_of_the_overlap_has_edges():
+    """A 24 m overlap whose first 10 m are ribbed and the rest a plain tube (a pair at the end of
+    a featureless section): on 5 m windows only two find the along-track offset, too few for a
+    curve that checks itself. Halving those two puts four windows on the edges, each placed as
+    well as before, and the plain part keeps its across and up. The pair's offset is reported
+    between those windows: at the overlap's middle it would be extrapolated."""
+    def run(seed: int, phase: float) -> np.ndarray:
+        return np.concatenate([_scanned(0, 10, seed, phase), _scanned(10, 24, seed + 1, phase, features=False)])
+
+    a_xyz, b_true = run(0, 0.0), run(10, 0.023)
+    d0, g = np.array([0.05, 0.02, -0.01]), np.array([0.003, 0.0, 0.0])
+    b_xyz = b_true - (d0 + (b_true[:, 0] - 12.0)[:, None] * g)
+    fit = piecewise_fit(build_target(a_xyz), a_xyz, b_xyz, d0, length=5.0)
+    x = fit.windows[:, 0] + fit.origin[0]
+    found = fit.windows[:, 5] > 0
+    assert found.sum() >= 4 and x[found].max() < 10.5 and x.max() > 20
+    assert np.all(np.diff(x) > 0)  # in order along the track
+    np.testing.assert_allclose(fit.windows[found, 1], d0[0] + (x[found] - 12.0) * g[0], atol=0.025)
+    np.testing.assert_allclose(fit.windows[~found, 2:4], np.tile(d0[1:], ((~found).sum(), 1)), atol=0.005)
+    # the offset is reported where the edges place it, not extrapolated to the overlap's middle
+    x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
+    assert x[found].min() - 1e-3 <= x_ref <= x[found].max() + 1e-3
+    assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.025  # its windows' precision
