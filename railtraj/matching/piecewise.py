@@ -472,7 +472,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
         return None
     along = windows[:, 4] > 0
     s_ref = float(np.median(s))
-    if along.any():  # the along-track offset interpolated there, not extrapolated beyond its windows
+    if along.sum() >= CHECKED_WINDOWS:  # its along-track offset interpolated there, not extrapolated
         s_ref = float(np.clip(s_ref, windows[along, 0].min(), windows[along, 0].max()))
     coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along)
     table = np.column_stack([windows[:, :4], used, along]).astype(float)
