@@ -19,10 +19,10 @@ on. So the overlap is cut into windows of ``length`` metres along the track; eac
 A curve ``d(s) = c0 + c1 u + c2 u^2`` (``u = s - s_ref``; a parabola from 4 windows, a line
 from 2) through the window estimates is the result, ``c0`` the offset at the reference point
 (the median along-track position of run b's points in the overlap, moved between the windows
-that found an along-track offset where they lie to one side of it). Its scatter gives an
-honest covariance (each edge is placed only to a profile spacing, so a window's along estimate
-scatters by about a centimetre; across and up by millimetres), and windows far off the curve
-(a window on a sleeper alias) are dropped. On the simulated thesis tunnel the offset at the
+that found an along-track offset where three or more did and all lie to one side of it). Its
+scatter gives an honest covariance (each edge is placed only to a profile spacing, so a
+window's along estimate scatters by about a centimetre; across and up by millimetres), and
+windows far off the curve (a window on a sleeper alias) are dropped. On the simulated thesis tunnel the offset at the
 reference point came within 4.8 / 1.7 / 3.4 mm RMS (along / across / up) of the truth on pairs
 a rigid fit refused as degenerate.
 """
