@@ -22,9 +22,9 @@ from 2) through the window estimates is the result, ``c0`` the offset at the ref
 that found an along-track offset where three or more did and all lie to one side of it). Its
 scatter gives an honest covariance (each edge is placed only to a profile spacing, so a
 window's along estimate scatters by about a centimetre; across and up by millimetres), and
-windows far off the curve (a window on a sleeper alias) are dropped. On the simulated thesis tunnel the offset at the
-reference point came within 4.8 / 1.7 / 3.4 mm RMS (along / across / up) of the truth on pairs
-a rigid fit refused as degenerate.
+windows far off the curve (a window on a sleeper alias) are dropped. On the simulated thesis
+tunnel the offset at the reference point came within 4.8 / 1.7 / 3.4 mm RMS (along / across /
+up) of the truth on pairs a rigid fit refused as degenerate.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class Piecewise:
     coefs: np.ndarray  # (3, 3) world-frame coefficients of u^0 (the offset at s_ref), u^1, u^2
     axis: np.ndarray  # (3,) unit horizontal track direction
     origin: np.ndarray  # (3,) where s = 0
-    s_ref: float  # along-track position of the reference point (median of the moving points, see piecewise_fit)
+    s_ref: float  # along-track position of the reference point (where: piecewise_fit)
     cov: np.ndarray  # (3, 3) covariance of d_ref
     windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1/0: its profile has a valley)
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
@@ -314,12 +314,12 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                  if row is not None and row[4] > 0 and (bounds[k][1] - bounds[k][0]) / 2 >= min_length]
         if not split:
             break
-        halves = [(lo, 0.5 * (lo + hi), 2 * seed + 1000) for lo, hi, seed in (bounds[k] for k in split)]
-        halves += [(0.5 * (lo + hi), hi, 2 * seed + 1001) for lo, hi, seed in (bounds[k] for k in split)]
+        halves = [half for lo, hi, seed in (bounds[k] for k in split)
+                  for half in ((lo, 0.5 * (lo + hi), 2 * seed + 1000), (0.5 * (lo + hi), hi, 2 * seed + 1001))]
         sub = fitted(halves)
-        keep = [k for k in range(len(bounds)) if k not in split]
         if _found(sub) <= len(split):  # the halves found no more than their windows did
             break
+        keep = [k for k in range(len(bounds)) if k not in split]
         bounds, rows = [bounds[k] for k in keep] + halves, [rows[k] for k in keep] + sub
     rows = [row for row in rows if row is not None]
     return np.array(sorted(rows)).reshape(-1, 5)
