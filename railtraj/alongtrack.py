@@ -259,7 +259,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     from scipy.signal import find_peaks, peak_prominences
 
     fitness = np.asarray(prof["fitness"], float)
-    if not len(fitness) or fitness.max() < options.min_fitness:
+    if not len(fitness) or (fitness.max() < options.min_fitness and prof.get("source") != "marks"):
         return NO_EVIDENCE  # the pair's clouds hardly meet at any shift
     ts = prof["start"] + prof["step"] * np.arange(len(fitness))
     misfit = np.maximum(1.0 - fitness, 1e-3)

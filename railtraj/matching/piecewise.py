@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
+from railtraj.matching.intensity import IntensityMarks
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
@@ -42,6 +43,11 @@ from railtraj.matching.threads import map_threads
 
 #: per-window sd floors (m) along, across, up: what a window estimate scatters by at best
 WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])
+#: along-track sd floor (m) of a curve resting on a window placed by intensity marks
+#: (:mod:`railtraj.matching.intensity`): such windows scattered by 0.1-6 cm on simulated marks
+MARKS_SD_FLOOR = 0.02
+#: how far (m) marks are searched either side of a window's offset where no vote window says
+MARKS_SEARCH = 1.5
 #: a window's along-track profile must rise from its valley by this many times its noise
 #: (:func:`valley_significance`); flatter, the window has no edges and gives no offset
 MIN_VALLEY = 3.0
@@ -61,9 +67,16 @@ class Piecewise:
     origin: np.ndarray  # (3,) where s = 0
     s_ref: float  # along-track position of the reference point (where: piecewise_fit)
     cov: np.ndarray  # (3, 3) covariance of d_ref
-    windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1/0: its profile has a valley)
+    windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1: its profile has a valley, 2: marks placed it, 0: neither)
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
+    marks: IntensityMarks | None = None  # the clouds' intensity marks, where intensities were given
+
+    @property
+    def on_marks(self) -> bool:
+        """Whether the curve's along-track offset rests on windows placed by marks alone."""
+        used = self.windows[self.windows[:, 4] > 0, 5] if len(self.windows) else np.zeros(0)
+        return bool(len(used)) and bool((used == 2).all())
 
     @property
     def d_ref(self) -> np.ndarray:
@@ -257,12 +270,15 @@ def profile_minimum(ts: np.ndarray, cost: np.ndarray) -> float:
 def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_start: np.ndarray,
                    axis: np.ndarray, s: np.ndarray, length: float, *, points: int = 8_000,
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
-                   min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0) -> np.ndarray:
+                   min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0,
+                   marks: IntensityMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
     window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
-    keeps its across and up; its along-track value is point-to-plane's, which means nothing.
-    A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
+    keeps its across and up; its along-track value is point-to-plane's, which means nothing,
+    unless ``marks`` (intensity, :mod:`railtraj.matching.intensity`) place it (``along`` 2),
+    searched along the chord of ``vote_window`` (the votes' centre and radius) through the
+    window's offset. A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
     Where only one or two windows find an along-track offset (:data:`CHECKED_WINDOWS`: a pair at
     the end of a featureless section, edges in part of it only), each of those is halved and its
     halves tested again, while halves of ``min_length`` or more find more offsets: on the mixed
@@ -286,6 +302,13 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             edges = core
     ts = np.arange(-search, search + step / 2, step)
     tree_along = along_coordinates(tree, axis)
+    frame = track_frame(axis)
+
+    def marked(inside: np.ndarray, d: np.ndarray) -> float:
+        if marks is None:
+            return float("nan")
+        lo, hi = window_chord(d, axis, *vote_window) if vote_window is not None else (-MARKS_SEARCH, MARKS_SEARCH)
+        return marks.shift(inside, frame @ d, lo, hi)
 
     def window(bounds: tuple[float, float, int]) -> list[float] | None:
         lo, hi, seed = bounds
@@ -297,8 +320,9 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
-        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only
-            return [float(s[inside].mean()), *fit.d, 0.0]
+        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only, unless marks
+            t = marked(inside, fit.d)
+            return [float(s[inside].mean()), *(fit.d + np.nan_to_num(t) * axis), 2.0 if np.isfinite(t) else 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
         return [float(s[inside].mean()), *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 
@@ -346,7 +370,7 @@ def _filled(s: np.ndarray, edges: np.ndarray, min_points: int) -> int:
 
 
 def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float = 0.03,
-              along: np.ndarray | None = None) -> tuple:
+              along: np.ndarray | None = None, sd_floor: np.ndarray = WINDOW_SD_FLOOR) -> tuple:
     """Smooth curve through window offsets: (coefs (3, 3), cov of the offset at ``s_ref``, used
     mask, resid sd along/across/up). Coefficients are world-frame, of ``(s - s_ref)^0, ^1, ^2``.
 
@@ -356,7 +380,7 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
     offset is more than ``reject`` (3 window sd) off the curve through the others is dropped,
     the worst first, while 3 or more remain (a tile pair left with 3 is not ``ok``: windows
     that disagree that much say the pair is unreliable). The sd per axis is the residual
-    scatter, never below :data:`WINDOW_SD_FLOOR`.
+    scatter, never below ``sd_floor``.
 
     ``along``: which windows found an along-track offset (default all); the others count across
     and up only. ``used`` marks the windows the along-track curve rests on.
@@ -382,7 +406,7 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
         else:  # no window found the along-track offset: it is unknown
             coef[0, axes] = d[:, axes].mean(axis=0)
             var_scale[axes] = np.inf
-    sd = np.maximum(sd, WINDOW_SD_FLOOR)
+    sd = np.maximum(sd, sd_floor)
     cov_track = np.diag(np.minimum(sd**2 * var_scale, UNKNOWN_VAR))
     return coef @ frame, frame.T @ cov_track @ frame, used, sd
 
@@ -452,12 +476,14 @@ def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
 
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
                   length: float = 5.0, information: np.ndarray | None = None, tree: cKDTree | None = None,
-                  **window_options) -> Piecewise | None:
+                  intensity: tuple[np.ndarray, np.ndarray] | None = None, **window_options) -> Piecewise | None:
     """Fit the curve of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
 
     ``target`` is the plane target of ``ref_xyz``; ``information`` a point-to-plane information
     matrix near ``d_start`` (for the track direction; fitted here if None); ``tree`` a KD-tree
-    on ``ref_xyz`` (built if None). Returns None when no window could be placed.
+    on ``ref_xyz`` (built if None); ``intensity`` the two clouds' intensities, which place
+    windows without edges where marks are (:func:`window_offsets`). Returns None when no window
+    could be placed.
     """
     if information is None or not np.isfinite(information).all():
         information = point_to_plane(target, sample(moving, 20_000), d_start, iterations=3).information
@@ -467,19 +493,24 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
     tree = reference_tree(ref_xyz) if tree is None else tree
-    windows = window_offsets(target, tree, moving, d_start, axis, s, length, **window_options)
+    marks = None if intensity is None else IntensityMarks.build(
+        ref_xyz, intensity[0], moving, intensity[1], track_frame(axis), origin, window_options.get("tau", 0.05))
+    windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
     along = windows[:, 4] > 0
     s_ref = float(np.median(s))
     if along.sum() >= CHECKED_WINDOWS:  # its along-track offset interpolated there, not extrapolated
         s_ref = float(np.clip(s_ref, windows[along, 0].min(), windows[along, 0].max()))
-    coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along)
-    table = np.column_stack([windows[:, :4], used, along]).astype(float)
+    floor = WINDOW_SD_FLOOR.copy()
+    if (windows[:, 4] == 2).any():  # a window placed by marks: along only to centimetres
+        floor[0] = MARKS_SD_FLOOR
+    coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
+    table = np.column_stack([windows[:, :4], used, windows[:, 4]]).astype(float)
     centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
-    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd)
+    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks)
 
 
 def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center: np.ndarray, window: float,
@@ -492,7 +523,15 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
     the along-track fitness profile, against that of the curve itself, each the best within 3 cm.
     Returns the ratio (1: indistinguishable, above 1: the alias fits better), the along-track
     shift to that alias, and the coarse profile for the report.
+
+    A curve whose along-track offset rests on intensity marks alone is judged by them
+    (:meth:`railtraj.matching.intensity.IntensityMarks.alias_ratio`): its geometry fits alike
+    at every shift.
     """
+    if fit.on_marks and fit.marks is not None and len(fit.marks.b_coords) == len(moving):
+        lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
+        ratio, shift, profile = fit.marks.alias_ratio(fit.at(moving) @ track_frame(fit.axis).T, lo, hi)
+        return ratio, shift, {"axis": fit.axis.tolist(), **profile}
     pts = sample(moving, points, seed=2)
     moved = pts + fit.at(pts)
     lo, hi = window_chord(fit.d_ref, fit.axis, center, window)

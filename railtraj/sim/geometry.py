@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from railtraj.sim import objects
+from railtraj.sim.marks import Marks, lay_marks
 from railtraj.sim.mesh import Hole, MeshBuilder, chainage_breaks
 from railtraj.sim.sections import KINDS, NICHE_TOP, SectionSet
 from railtraj.sim.surfaces import Surface
@@ -38,6 +39,7 @@ class GeometrySpec:
     mast_spacing: float = 50.0
     pillar_spacing: float = 8.0
     control_spacing: float | None = None
+    lining_marks: float = 0.0  # intensity marks (stains, paint) per 100 m of tunnel: railtraj.sim.marks
     layout_seed: int = 7
     max_step: float = 1.0
 
@@ -58,6 +60,7 @@ class Scene:
     triangles: np.ndarray
     surface: np.ndarray
     control: dict[str, np.ndarray]
+    marks: Marks | None = None
     _raycaster: object = None
 
     @property
@@ -122,8 +125,10 @@ def build_scene(spec: GeometrySpec) -> Scene:
     vertices, triangles, surface = b.build(centreline)
     ids = [f"CP{k + 1:03d}" for k in range(len(control))]
     world = centreline.to_world(centreline.to_local(np.array(control).reshape(-1, 3)))
-    return Scene(spec, centreline, secs, spans, vertices, triangles, surface,
-                 dict(zip(ids, world, strict=True)))
+    scene = Scene(spec, centreline, secs, spans, vertices, triangles, surface, dict(zip(ids, world, strict=True)))
+    if spec.lining_marks > 0:  # a generator of their own: the layout of a survey without marks is kept
+        scene.marks = lay_marks(scene, spec.lining_marks, np.random.default_rng([spec.layout_seed, 1]))
+    return scene
 
 
 def _end_walls(b: MeshBuilder, secs: SectionSet, spans: list[tuple[str, float, float]]) -> None:

@@ -82,8 +82,9 @@ def scan(scene: Scene, pose: PoseInterpolator, t0: float, t1: float, spec: Scann
         cls = scene.surface[tri[k]]
         cos_inc = np.einsum("ij,ij->i", normals[tri[k]], d[k])
         d_body = dirs[k % npp]
+        gain = None if scene.marks is None else scene.marks.gain(o[k] + t_hit[k, None] * d[k])
         parts.append(Scan(t[k], lever + r[:, None] * d_body,
-                          intensity(cls, cos_inc, r, rng, spec.intensity_noise), cls))
+                          intensity(cls, cos_inc, r, rng, spec.intensity_noise, gain), cls))
     if not parts:
         return Scan(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.uint16), np.zeros(0, np.uint8))
     return Scan(*(np.concatenate([getattr(p, k) for p in parts])

@@ -45,13 +45,15 @@ assert len(REFLECTANCE) == len(Surface)
 
 
 def intensity(cls: np.ndarray, cos_incidence: np.ndarray, rng_m: np.ndarray,
-              rng: np.random.Generator, noise: float = 0.06) -> np.ndarray:
+              rng: np.random.Generator, noise: float = 0.06, gain: np.ndarray | None = None) -> np.ndarray:
     """Intensity per hit: class reflectance, Lambert-like incidence, mild range fall-off, noise.
 
-    The model is deliberately simple: ``R * (0.3 + 0.7 cos) * (5 / max(r, 1)) ** 0.5 * (1 + noise)``,
-    clipped to uint16.
+    The model is deliberately simple: ``R * g * (0.3 + 0.7 cos) * (5 / max(r, 1)) ** 0.5 * (1 + noise)``,
+    clipped to uint16; ``g`` is ``gain`` per hit (marks on the lining, :mod:`railtraj.sim.marks`), else 1.
     """
     base = REFLECTANCE[cls] * (0.3 + 0.7 * np.abs(cos_incidence))
+    if gain is not None:
+        base *= gain
     base *= np.sqrt(5.0 / np.maximum(rng_m, 1.0))
     base *= 1.0 + noise * rng.standard_normal(len(base))
     return np.clip(base, 0, 65535).astype(np.uint16)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -107,3 +109,17 @@ def test_control_targets_sit_on_the_walls(scene):
         t, tri = scene.cast((local - side * right)[None], (side * right)[None])
         assert scene.surface[tri[0]] == Surface.TARGET
         assert t[0] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_lining_marks_lie_on_the_tunnel_surface_and_leave_its_shape_alone():
+    spec = GeometrySpec(sections=(("cutting", 20.0), ("circular", 80.0), ("cutting", 20.0)), lining_marks=20.0)
+    marked, plain = build_scene(spec), build_scene(replace(spec, lining_marks=0.0))
+    assert plain.marks is None and np.array_equal(marked.vertices, plain.vertices)
+    assert 5 <= len(marked.marks) <= 35  # Poisson, 16 expected over the 80 m tunnel
+    axis = marked.centreline.to_local(np.column_stack([np.linspace(0, 120, 1201), np.zeros(1201), np.full(1201, 2.0)]))
+    nearest = np.linalg.norm(marked.marks.centres[:, None] - axis[None], axis=2)
+    s = np.argmin(nearest, axis=1) * 0.1
+    assert np.all((s > 20.0) & (s < 100.0))  # in the tunnel, not in the cuttings
+    assert np.all((nearest.min(axis=1) > 1.5) & (nearest.min(axis=1) < 4.0))  # on the lining
+    assert np.array_equal(marked.marks.gain(marked.marks.centres), marked.marks.gains)
+    assert np.all(marked.marks.gain(axis) == 1.0)  # off the discs
