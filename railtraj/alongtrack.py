@@ -627,9 +627,16 @@ def _unchecked_fit(o: TileOffset) -> bool:
     through them fits them exactly, so nothing measures how far its along-track value may be
     off, and its sd (``max_pair_sd`` at least, :func:`_placement_variance`) is a guess. With
     2 cm range noise one such pair, fixed on its own fit, sat 11.8 cm off claiming 2.0 cm.
-    The chain does not fix it: it is observed where the chain predicts, across and up only."""
+    The chain does not fix it: it is observed where the chain predicts, across and up only.
+
+    Windows placed by intensity marks alone are another matter: the pair's offset is given at
+    them (its reference point lies between them), and its alias profile, the marks' own, spans
+    the whole search window."""
     windows = o.info["piecewise"].get("windows")
-    return _degenerate_fit(o) and windows is not None and _along_windows(windows) <= 2
+    if windows is None or not _degenerate_fit(o) or _along_windows(windows) > 2:
+        return False
+    placed = [w[5] == 2 for w in windows if len(w) >= 6 and w[5] > 0]
+    return not (placed and all(placed))
 
 
 def _unresolved_use(o: TileOffset) -> TileOffset:

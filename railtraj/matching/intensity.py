@@ -7,19 +7,25 @@ though: water stains, soot, repairs and painted markers return more or less ligh
 concrete around them, and every tile carries intensity.
 
 Each run's intensity is compared with its own surroundings first: the log-intensity of a point
-minus the median of its cross-section cell (``CELL`` metres across and up, over the whole tile).
-Range, incidence and surface class are alike along a uniform section, so they leave the cell's
-median and only what changes along the track stays; the residual is scaled by its robust sd. A
-point of run b is *marked* where its residual exceeds :data:`MARK_SD`; it *agrees* with run a at
-a shift ``t`` where run a's nearest point within ``radius`` of it, moved ``t`` along the track,
-has a residual of the same sign beyond :data:`AGREE_SD`. The share of marked points that agree,
-over the shifts, is a profile like the geometric fitness profile: a mark gives one peak (its
-discs overlap most at the true shift), chance agreement a floor, and a repeated pattern (ring
-joints, sleepers) one peak per period, which the rival test refuses.
+minus the median of its cross-section cell (:data:`CELL` metres across and up, over the tile).
+Range, incidence and surface class are alike along a uniform section, so they stay in the
+cell's median and only what changes along the track is left. Cells that do not run along the
+track for :data:`MIN_ALONG` metres (the faces of a box, seen from one side or the other
+depending on the direction of travel) are left out. A point of run b is *marked* where its
+residual is beyond :data:`MARK_SD` sd; it *agrees* with run a at a shift ``t`` where, moved
+``t`` along the track, it has a point of run a on a mark within ``radius`` whose residual is
+within :data:`AGREE_SD` sd of its own (a stain darkens its surface alike for every run).
+
+The share of marked points that agree, over the shifts, is a profile like the geometric fitness
+profile: a mark gives one narrow peak (its two discs overlap most at the true shift), chance
+agreement a low floor. :func:`profile_peak` takes its centre only where nothing else rises
+near it: a repeated pattern (ring bolts) gives a peak per period, and a change of surface along
+the track (a section's end) a ramp as wide as a run's view of it; both are refused.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,9 +39,10 @@ MIN_CELL_POINTS = 5
 MIN_ALONG, ALONG_BIN = 3.0, 0.5
 #: a point of run b is on a mark where its residual is beyond this many sd
 MARK_SD = 4.0
-#: ... and run a agrees there where its residual is within this many sd of run b's (a mark darkens
-#: or brightens its surface alike for every run) and beyond half of MARK_SD
-AGREE_SD = 2.5
+#: ... and run a agrees there where its nearest point beyond AGREE_LEVEL of that (within the
+#: radius) has a residual within AGREE_SD sd of run b's: a mark darkens or brightens its surface
+#: alike for every run
+AGREE_SD, AGREE_LEVEL = 2.5, 0.5
 #: marked points a window needs before its profile means anything
 MIN_MARKED = 30
 #: the share of marked points that agree must rise this far above the profile's floor (chance)
@@ -48,8 +55,13 @@ MAX_FLOOR = 0.5
 #: widest peak (m, at half its rise) taken for a mark: a disc of radius r gives about 1.6 r, and a
 #: change of surface along the track a ramp metres wide whose centre moves with each run's view
 MAX_WIDTH = 1.0
-#: step (m) of the shifts searched
-STEP = 0.02
+#: largest sd (m) of a mark's shift (:func:`peak_sd`) taken: MARKS_SD_FLOOR in railtraj.matching.piecewise
+MAX_SD = 0.02
+#: how far (m) beyond a window's ends its marks are taken whole (the largest mark's radius and more)
+REACH = 0.75
+#: step (m) of the shifts searched in a window, and in a pair's alias profile (which places
+#: nothing: the chain only tells its peaks apart, like the geometric profile's 5 cm steps)
+STEP, ALIAS_STEP = 0.02, 0.05
 
 
 def residuals(coords: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
@@ -59,9 +71,9 @@ def residuals(coords: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, fl
     if not len(coords):
         return np.zeros(0), 0.0
     level = np.log(np.maximum(np.asarray(intensity, float), 1.0))
-    cells = np.floor(coords[:, 1:] / CELL).astype(np.int64)
-    _, cell = np.unique(cells, axis=0, return_inverse=True)
-    cell = cell.ravel()
+    ij = np.floor(coords[:, 1:] / CELL).astype(np.int64)
+    ij -= ij.min(axis=0)
+    _, cell = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True)
     order = np.lexsort((level, cell))
     counts = np.bincount(cell)
     starts = np.r_[0, np.cumsum(counts)[:-1]]
@@ -81,8 +93,8 @@ def residuals(coords: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, fl
 class IntensityMarks:
     """Run a's intensity residuals and run b's, in one track frame, to slide run b along."""
 
-    tree: cKDTree  # run a's points (along, across, up)
-    a_resid: np.ndarray  # log-intensity residuals (:func:`residuals`)
+    tree: cKDTree  # run a's points (along, across, up) that may agree (beyond AGREE_LEVEL of a mark)
+    a_resid: np.ndarray  # their log-intensity residuals (:func:`residuals`)
     a_sd: float
     b_coords: np.ndarray  # run b's points (along, across, up), before any offset
     b_resid: np.ndarray
@@ -95,37 +107,55 @@ class IntensityMarks:
         """``frame``: rows along, across, up (each run's residuals are its own: its cells need
         not coincide with the other's)."""
         a, b = (a_xyz - origin) @ frame.T, (b_xyz - origin) @ frame.T
-        return cls(cKDTree(a), *residuals(a, a_intensity), b, *residuals(b, b_intensity), radius)
+        a_resid, a_sd = residuals(a, a_intensity)
+        keep = np.abs(a_resid) > AGREE_LEVEL * MARK_SD * a_sd  # only these can agree: a small tree
+        return cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, *residuals(b, b_intensity), radius)
+
+    def marked(self, inside: np.ndarray) -> np.ndarray:
+        """Mask of run b's points among ``inside`` that lie on a mark (beyond :data:`MARK_SD`)."""
+        return inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
 
     def agreement(self, inside: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
         """(len(ts), m) whether each of the m marked points of run b among ``inside``, moved by
         ``offset`` (track frame: one (3,), or one per point of run b (n, 3)) and then ``t`` along
         the track, agrees with run a."""
-        marked = inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else inside & False
+        marked = self.marked(inside)
         offset = np.asarray(offset, float)
         pts = self.b_coords[marked] + (offset if offset.ndim == 1 else offset[marked])
         level = self.b_resid[marked]
         out = np.zeros((len(ts), len(pts)), bool)
         if not len(pts) or not self.a_sd > 0:
             return out
-        lookup = np.append(self.a_resid, 0.0)  # a missing neighbour (index n) agrees with nothing
+        lookup = np.append(self.a_resid, np.inf)  # a missing neighbour (index n) agrees with nothing
         tolerance = AGREE_SD * np.hypot(self.a_sd, self.b_sd)
         for k, t in enumerate(ts):  # a few dozen shifts, each one query of all marked points
             _, idx = self.tree.query(pts + np.array([t, 0.0, 0.0]), distance_upper_bound=self.radius)
             a_level = lookup[idx]
-            out[k] = (np.abs(a_level - level) <= tolerance) & (np.abs(a_level) > MARK_SD * self.a_sd / 2)
+            out[k] = np.abs(a_level - level) <= tolerance
         return out
 
-    def shift(self, inside: np.ndarray, offset: np.ndarray, lo: float, hi: float) -> float:
-        """Along-track shift (m) of the marks among ``inside`` from ``offset`` onto run a's,
-        searched from ``lo`` to ``hi``; NaN when the profile has no single clear peak
-        (:func:`profile_peak`)."""
-        ts = np.arange(lo, hi + STEP / 2, STEP)
-        agree = self.agreement(inside, offset, ts)
-        if agree.shape[1] < MIN_MARKED:
-            return float("nan")
-        return profile_peak(ts, agree.mean(axis=1))
+    def place(self, lo: float, hi: float, offset: np.ndarray, t_lo: float, t_hi: float) -> tuple[float, float]:
+        """Where the marks of the window ``[lo, hi]`` (along-track, as :attr:`b_coords`) lie and
+        their shift (m) from ``offset`` onto run a's, searched from ``t_lo`` to ``t_hi``:
+        ``(s, t)``, NaN when the profile has no single clear peak (:func:`profile_peak`).
 
+        Marks are whole: the window reaches :data:`REACH` beyond its ends (a disc cut in half by
+        the window's end is matched against a whole one, and its peak leans). ``s`` is the
+        median position of the marked points that agree at the peak, for drift changes the
+        offset along the window (18 mm/m is 4.5 cm at its end); a mark there that lies beyond
+        the window is left to the next one."""
+        s = self.b_coords[:, 0]
+        ts = np.arange(t_lo, t_hi + STEP / 2, STEP)
+        marked = self.marked((s >= lo - REACH) & (s <= hi + REACH))
+        agree = self.agreement(marked, offset, ts)
+        if agree.shape[1] < MIN_MARKED:
+            return float("nan"), float("nan")
+        t = profile_peak(ts, agree.mean(axis=1))
+        if not (np.isfinite(t) and peak_sd(ts, agree) <= MAX_SD):
+            return float("nan"), float("nan")
+        at = agree[int(np.argmin(np.abs(ts - t)))]
+        s_mark = float(np.median(s[marked][at])) if at.any() else float("nan")
+        return (s_mark, t) if lo <= s_mark <= hi else (float("nan"), float("nan"))
 
     def alias_ratio(self, offsets: np.ndarray, lo: float, hi: float) -> tuple[float, float, dict]:
         """How close the best alias along the track comes to the curve that moves run b's points
@@ -133,10 +163,10 @@ class IntensityMarks:
         :func:`railtraj.matching.piecewise.alias_ratio`, the misfit (share of marked points that
         do not agree) at the curve over that of the best shift beyond the curve's peak, the
         shift to it, and the profile (``points``: the marked points, ``source`` "marks")."""
-        ts = STEP * np.arange(np.floor(lo / STEP), np.ceil(hi / STEP) + 1)
+        ts = ALIAS_STEP * np.arange(np.floor(lo / ALIAS_STEP), np.ceil(hi / ALIAS_STEP) + 1)
         agree = self.agreement(np.ones(len(self.b_coords), bool), offsets, ts)
         share = agree.mean(axis=1) if agree.shape[1] else np.zeros(len(ts))
-        profile = {"start": float(ts[0]), "step": STEP, "fitness": share.tolist(), "points": agree.shape[1],
+        profile = {"start": float(ts[0]), "step": ALIAS_STEP, "fitness": share.tolist(), "points": agree.shape[1],
                    "source": "marks"}
         k0 = int(np.argmin(np.abs(ts)))
         floor = float(np.median(share))
@@ -145,6 +175,20 @@ class IntensityMarks:
             return 0.0, 0.0, profile
         k = int(np.flatnonzero(~foot)[np.argmax(share[~foot])])
         return float((1.0 - share[k0]) / max(1.0 - share[k], 1e-12)), float(ts[k]), profile
+
+
+class LazyMarks:
+    """:meth:`IntensityMarks.build` on first use, once, also when windows on several threads
+    ask at the same time: most pairs have edges in every window and never need it."""
+
+    def __init__(self, *args) -> None:
+        self._args, self._marks, self._lock = args, None, threading.Lock()
+
+    def __call__(self) -> IntensityMarks:
+        with self._lock:
+            if self._marks is None:
+                self._marks = IntensityMarks.build(*self._args)
+            return self._marks
 
 
 def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
@@ -170,6 +214,25 @@ def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
         return float("nan")
     w = share[lo_half:hi_half + 1] - floor - 0.5 * rise
     return float((ts[lo_half:hi_half + 1] * w).sum() / w.sum())
+
+
+def peak_sd(ts: np.ndarray, agree: np.ndarray, groups: int = 8) -> float:
+    """sd (m) of :func:`profile_peak`'s centre from the scatter of the centres of ``groups``
+    interleaved subsets of the marked points (columns of ``agree``), each over the full
+    profile's peak, times 1.5: the subsets share run a's points, and on simulated discs the
+    unscaled sd fell short of the errors by 1.4 (RMS of their ratio, 18 discs)."""
+    share = agree.mean(axis=1)
+    floor = float(np.median(share))
+    k = int(np.argmax(share))
+    _, lo, hi = _extent(share - floor, k, 0.5 * (share[k] - floor))
+    members = np.arange(agree.shape[1]) % groups
+    level = floor + 0.5 * (share[k] - floor)
+    centres = []
+    for g in range(groups):  # eight subsets
+        w = np.maximum(agree[lo:hi + 1, members == g].mean(axis=1) - level, 0.0)
+        if w.sum() > 0:
+            centres.append(float((ts[lo:hi + 1] * w).sum() / w.sum()))
+    return 1.5 * float(np.std(centres, ddof=1)) / np.sqrt(len(centres)) if len(centres) > 2 else np.inf
 
 
 def _extent(y: np.ndarray, k: int, level: float) -> tuple[np.ndarray, int, int]:

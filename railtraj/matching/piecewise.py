@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, profile_rivals, window_chord
-from railtraj.matching.intensity import IntensityMarks
+from railtraj.matching.intensity import LazyMarks
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
@@ -70,7 +70,7 @@ class Piecewise:
     windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1: its profile has a valley, 2: marks placed it, 0: neither)
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
-    marks: IntensityMarks | None = None  # the clouds' intensity marks, where intensities were given
+    marks: LazyMarks | None = None  # the clouds' intensity marks, where intensities were given
 
     @property
     def on_marks(self) -> bool:
@@ -271,7 +271,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    axis: np.ndarray, s: np.ndarray, length: float, *, points: int = 8_000,
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0,
-                   marks: IntensityMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
+                   marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
     window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
@@ -304,11 +304,12 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     tree_along = along_coordinates(tree, axis)
     frame = track_frame(axis)
 
-    def marked(inside: np.ndarray, d: np.ndarray) -> float:
+    def marked(lo: float, hi: float, d: np.ndarray) -> tuple[float, float]:
+        """Where marks in the window lie along the track and their shift from ``d`` (NaN: none)."""
         if marks is None:
-            return float("nan")
-        lo, hi = window_chord(d, axis, *vote_window) if vote_window is not None else (-MARKS_SEARCH, MARKS_SEARCH)
-        return marks.shift(inside, frame @ d, lo, hi)
+            return float("nan"), float("nan")
+        t_lo, t_hi = window_chord(d, axis, *vote_window) if vote_window is not None else (-MARKS_SEARCH, MARKS_SEARCH)
+        return marks().place(lo, hi, frame @ d, t_lo, t_hi)
 
     def window(bounds: tuple[float, float, int]) -> list[float] | None:
         lo, hi, seed = bounds
@@ -321,8 +322,10 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             return None
         costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
         if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only, unless marks
-            t = marked(inside, fit.d)
-            return [float(s[inside].mean()), *(fit.d + np.nan_to_num(t) * axis), 2.0 if np.isfinite(t) else 0.0]
+            s_mark, t = marked(lo, hi, fit.d)
+            if np.isfinite(t):  # placed where its marks are
+                return [s_mark, *(fit.d + t * axis), 2.0]
+            return [float(s[inside].mean()), *fit.d, 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
         return [float(s[inside].mean()), *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 
@@ -493,14 +496,17 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
     tree = reference_tree(ref_xyz) if tree is None else tree
-    marks = None if intensity is None else IntensityMarks.build(
+    marks = None if intensity is None else LazyMarks(
         ref_xyz, intensity[0], moving, intensity[1], track_frame(axis), origin, window_options.get("tau", 0.05))
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
     along = windows[:, 4] > 0
     s_ref = float(np.median(s))
-    if along.sum() >= CHECKED_WINDOWS:  # its along-track offset interpolated there, not extrapolated
+    # its along-track offset interpolated there, not extrapolated; with one or two windows only
+    # where marks placed them: a mark is where it is to centimetres (a window's edges, at the
+    # end of a featureless section, were not: :data:`CHECKED_WINDOWS`)
+    if along.sum() >= CHECKED_WINDOWS or (along.any() and (windows[along, 4] == 2).all()):
         s_ref = float(np.clip(s_ref, windows[along, 0].min(), windows[along, 0].max()))
     floor = WINDOW_SD_FLOOR.copy()
     if (windows[:, 4] == 2).any():  # a window placed by marks: along only to centimetres
@@ -528,9 +534,9 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
     (:meth:`railtraj.matching.intensity.IntensityMarks.alias_ratio`): its geometry fits alike
     at every shift.
     """
-    if fit.on_marks and fit.marks is not None and len(fit.marks.b_coords) == len(moving):
+    if fit.on_marks and fit.marks is not None and len(fit.marks().b_coords) == len(moving):
         lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
-        ratio, shift, profile = fit.marks.alias_ratio(fit.at(moving) @ track_frame(fit.axis).T, lo, hi)
+        ratio, shift, profile = fit.marks().alias_ratio(fit.at(moving) @ track_frame(fit.axis).T, lo, hi)
         return ratio, shift, {"axis": fit.axis.tolist(), **profile}
     pts = sample(moving, points, seed=2)
     moved = pts + fit.at(pts)

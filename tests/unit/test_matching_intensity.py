@@ -33,28 +33,33 @@ def pair(marks, shift, seed=0):
                                 np.eye(3), np.zeros(3), radius=0.05)
 
 
-def window(marks: IntensityMarks, lo, hi):
-    return (marks.b_coords[:, 0] >= lo) & (marks.b_coords[:, 0] <= hi)
-
-
 @pytest.mark.parametrize("shift", [0.37, -0.81])
 def test_a_mark_places_a_window_without_edges(shift):
     marks = pair([(8.0, 1.2, 0.35, 1.7), (13.0, 2.0, 0.3, 0.6)], shift)
-    t = marks.shift(window(marks, 5.0, 10.0), np.zeros(3), -1.5, 1.5)
+    s, t = marks.place(5.0, 10.0, np.zeros(3), -1.5, 1.5)
     assert abs(t - shift) < 0.02  # MARKS_SD_FLOOR: one disc of ~150 points places a window to 1-2 cm
-    both = marks.shift(window(marks, 5.0, 15.0), np.zeros(3), -1.5, 1.5)
-    assert abs(both - shift) < 0.02
+    assert abs(s - (8.0 - shift)) < 0.1  # where the mark is in run b
+    s, t = marks.place(5.0, 15.0, np.zeros(3), -1.5, 1.5)
+    assert abs(t - shift) < 0.02 and 8.0 - shift < s < 13.0 - shift
+
+
+def test_a_mark_cut_by_the_window_end_is_taken_whole_and_left_to_the_window_it_lies_in():
+    marks = pair([(8.0, 1.2, 0.5, 1.7)], 0.3)  # in run b at 7.7, 0.5 m across
+    s, t = marks.place(2.7, 7.5, np.zeros(3), -1.5, 1.5)
+    assert np.isnan(t)  # the next window's mark
+    s, t = marks.place(7.5, 12.3, np.zeros(3), -1.5, 1.5)
+    assert abs(t - 0.3) < 0.03 and abs(s - 7.7) < 0.1  # 1.5 MAX_SD: 500 points on this disc
 
 
 def test_no_mark_no_shift():
     marks = pair([(8.0, 1.2, 0.35, 1.7)], 0.4)
-    assert np.isnan(marks.shift(window(marks, 11.0, 16.0), np.zeros(3), -1.5, 1.5))
+    assert np.isnan(marks.place(11.0, 16.0, np.zeros(3), -1.5, 1.5)[1])
 
 
 def test_repeated_marks_are_refused_as_aliases():
     """Marks every 1.0 m (ring bolts) fit every metre alike: no single peak."""
     marks = pair([(x, 1.5, 0.2, 1.8) for x in np.arange(2.0, 19.0, 1.0)], 0.3)
-    assert np.isnan(marks.shift(window(marks, 5.0, 10.0), np.zeros(3), -1.5, 1.5))
+    assert np.isnan(marks.place(5.0, 10.0, np.zeros(3), -1.5, 1.5)[1])
 
 
 def test_alias_ratio_is_low_on_the_true_shift_and_high_one_mark_off():

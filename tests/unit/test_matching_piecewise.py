@@ -250,3 +250,36 @@ def test_windows_are_halved_where_only_part_of_the_overlap_has_edges():
     x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
     assert x[found].min() - 1e-3 <= x_ref <= x[found].max() + 1e-3
     assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.025  # its windows' precision
+
+
+def _marked(xyz: np.ndarray, marks: list[tuple[tuple[float, float, float], float]], seed: int) -> np.ndarray:
+    """Intensity of an even grey surface (6 % noise), times each mark's gain within 0.35 m of it."""
+    level = 20000.0 * (1 + 0.06 * np.random.default_rng(seed).standard_normal(len(xyz)))
+    for centre, gain in marks:
+        level[np.linalg.norm(xyz - np.asarray(centre), axis=1) <= 0.35] *= gain
+    return level.astype(np.uint16)
+
+
+def test_marks_in_the_intensity_place_the_windows_of_a_plain_tube():
+    """A plain tube (no edges anywhere) with a stain or a painted patch every 6 m on its walls:
+    the windows over a mark are placed along the track by it (found 2), to the precision of the
+    scan lines, and the curve rests on them; without intensity none is placed. The pair's offset
+    is given between those windows."""
+    marks = [((3.0, -3.0, 1.5), 1.8), ((9.0, 3.0, 2.0), 0.5), ((15.0, -3.0, 1.0), 0.6), ((21.0, 3.0, 1.5), 1.7)]
+    a_xyz, b_true = _scanned(0, 24, 0, 0.0, features=False), _scanned(0, 24, 10, 0.023, features=False)
+    a_int, b_int = _marked(a_xyz, marks, 1), _marked(b_true, marks, 2)
+    d0, g = np.array([0.3, 0.02, -0.01]), np.array([0.003, 0.0, 0.0])
+    b_xyz = b_true - (d0 + (b_true[:, 0] - 12.0)[:, None] * g)
+    start = d0 - np.array([0.25, 0.0, 0.0])  # 25 cm off along the track: the votes know nothing better
+    target = build_target(a_xyz)
+    plain = piecewise_fit(target, a_xyz, b_xyz, start, length=5.0)
+    assert not (plain.windows[:, 5] > 0).any()
+    fit = piecewise_fit(target, a_xyz, b_xyz, start, length=5.0, intensity=(a_int, b_int),
+                        vote_window=(start, 1.0))
+    x = fit.windows[:, 0] + fit.origin[0]
+    placed_by_marks = fit.windows[:, 5] == 2
+    assert placed_by_marks.sum() >= 3 and fit.on_marks
+    np.testing.assert_allclose(fit.windows[placed_by_marks, 1], d0[0] + (x[placed_by_marks] - 12.0) * g[0], atol=0.02)
+    x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
+    assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.02
+    assert np.sqrt(fit.cov[0, 0]) >= 0.01  # a mark's window is known to centimetres, not millimetres
