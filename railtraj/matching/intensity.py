@@ -66,8 +66,9 @@ STEP, ALIAS_STEP = 0.02, 0.05
 
 def residuals(coords: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
     """Log-intensity minus the median of its cross-section cell (0 in cells with fewer than
-    :data:`MIN_CELL_POINTS` points), and the residuals' robust sd. ``coords``: (n, 3) along,
-    across, up."""
+    :data:`MIN_CELL_POINTS` points or along less than :data:`MIN_ALONG` of the track), and the
+    residuals' robust sd (0 where the tile has no intensity). ``coords``: (n, 3) along, across,
+    up."""
     if not len(coords):
         return np.zeros(0), 0.0
     level = np.log(np.maximum(np.asarray(intensity, float), 1.0))
@@ -128,7 +129,7 @@ class IntensityMarks:
             return out
         lookup = np.append(self.a_resid, np.inf)  # a missing neighbour (index n) agrees with nothing
         tolerance = AGREE_SD * np.hypot(self.a_sd, self.b_sd)
-        for k, t in enumerate(ts):  # a few dozen shifts, each one query of all marked points
+        for k, t in enumerate(ts):  # up to 300 shifts, each one query of all marked points
             _, idx = self.tree.query(pts + np.array([t, 0.0, 0.0]), distance_upper_bound=self.radius)
             a_level = lookup[idx]
             out[k] = np.abs(a_level - level) <= tolerance

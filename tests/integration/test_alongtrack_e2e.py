@@ -2,8 +2,8 @@
 
 ``commensurate``: ribs every 1.5 m and sleepers every 0.6 m repeat together every 3.0 m, so only
 niches and boxes 20-40 m apart tell the aliases apart; the demo's ``mixed`` tunnel with the same
-ribs and sleepers, whose featureless circular section is 170 m long; ``control``: targets
-surveyed in control.csv.
+ribs and sleepers, whose featureless circular section is 170 m long; a plain tube whose only
+along-track evidence is stains on its lining; ``control``: targets surveyed in control.csv.
 The corrected runs must agree better than the input, no ``ok`` offset may sit on an alias (none
 more than 5 cm off), and control must pin the absolute position.
 """
@@ -95,6 +95,24 @@ def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensura
     assert score["ok_pairs"] >= 15
     assert max(score["max_abs_m"]) <= 0.05, score
     assert sum(r["status"] == "coarse" for r in metrics["adjustment"]["alongtrack"]) >= 5
+
+
+def test_a_plain_tube_is_placed_along_the_track_by_stains_on_its_lining(tmp_path):
+    """A smooth circular tunnel on slab track (a cabinet every ~100 m, nothing else along the
+    track) with 10 marks per 100 m on its lining (``lining_marks``: stains and paint, seen only
+    in the intensity). Windows over a mark are placed by it and the chain fixes their pairs:
+    0.39 / 0.63 m inter-run before, 1.4 / 4.3 cm after; with ``matcher.intensity=false`` the
+    runs stayed 0.38 / 0.62 m apart (measured, 2 cores, 55 s each)."""
+    scn = get_scenario("feature_poor")
+    scn = replace(scn, geometry=replace(scn.geometry, lining_marks=10.0), drift=replace(scn.drift, max_horizontal=0.6))
+    survey = generate(scn, tmp_path / "survey", seed=7, size=0.5).survey_dir
+    metrics = _run(survey, tmp_path / "out")
+    before, after = _pair(metrics, "before"), _pair(metrics, "after")
+    assert before["rms_h"] > 0.2
+    assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"]
+    assert after["rms_v"] <= before["rms_v"]
+    fixed = [r for r in metrics["adjustment"]["alongtrack"] if r["status"] in ("ok", "coarse")]
+    assert len(fixed) >= 5
 
 
 @pytest.fixture(scope="module")
