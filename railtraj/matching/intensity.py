@@ -116,11 +116,10 @@ class IntensityMarks:
         """Mask of run b's points among ``inside`` that lie on a mark (beyond :data:`MARK_SD`)."""
         return inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
 
-    def agreement(self, inside: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
-        """(len(ts), m) whether each of the m marked points of run b among ``inside``, moved by
-        ``offset`` (track frame: one (3,), or one per point of run b (n, 3)) and then ``t`` along
-        the track, agrees with run a."""
-        marked = self.marked(inside)
+    def agreement(self, marked: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
+        """(len(ts), m) whether each of the m points of run b in ``marked`` (:meth:`marked`),
+        moved by ``offset`` (track frame: one (3,), or one per point of run b (n, 3)) and then
+        ``t`` along the track, agrees with run a."""
         offset = np.asarray(offset, float)
         pts = self.b_coords[marked] + (offset if offset.ndim == 1 else offset[marked])
         level = self.b_resid[marked]
@@ -165,7 +164,7 @@ class IntensityMarks:
         do not agree) at the curve over that of the best shift beyond the curve's peak, the
         shift to it, and the profile (``points``: the marked points, ``source`` "marks")."""
         ts = ALIAS_STEP * np.arange(np.floor(lo / ALIAS_STEP), np.ceil(hi / ALIAS_STEP) + 1)
-        agree = self.agreement(np.ones(len(self.b_coords), bool), offsets, ts)
+        agree = self.agreement(self.marked(np.ones(len(self.b_coords), bool)), offsets, ts)
         share = agree.mean(axis=1) if agree.shape[1] else np.zeros(len(ts))
         profile = {"start": float(ts[0]), "step": ALIAS_STEP, "fitness": share.tolist(), "points": agree.shape[1],
                    "source": "marks"}
@@ -196,16 +195,14 @@ def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
     """Centre of the single clear peak of an agreement profile, NaN if there is none.
 
     The floor is the profile's median (chance agreement, at most :data:`MAX_FLOOR` of the rise);
-    the peak must rise :data:`MIN_RISE` above it, be at most :data:`MAX_WIDTH` wide and lie inside the range with its feet (where it falls to a tenth of its rise), and
-    nothing beyond its feet rise more than :data:`MAX_RIVAL` of it. Its centre is the centroid of
+    the peak must rise :data:`MIN_RISE` above it, be at most :data:`MAX_WIDTH` wide at half its
+    rise, lie inside the range with its feet (where it falls to a tenth of its rise), and nothing
+    beyond its feet rise more than :data:`MAX_RIVAL` of it. Its centre is the centroid of
     the part above half its rise, which a disc's overlap (a tent, symmetric about the true shift)
     places without bias."""
-    floor = float(np.median(share))
-    k = int(np.argmax(share))
-    rise = share[k] - floor
+    floor, k, rise, lo_half, hi_half = _half_peak(share)
     if not (rise >= MIN_RISE and floor <= MAX_FLOOR * rise):
         return float("nan")
-    half, lo_half, hi_half = _extent(share - floor, k, 0.5 * rise)
     foot, lo, hi = _extent(share - floor, k, 0.1 * rise)
     if lo == 0 or hi == len(ts) - 1:
         return float("nan")  # the peak runs off the range: its centre is not seen
@@ -213,8 +210,7 @@ def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
         return float("nan")  # a step or a streak along the track: each run's view moves its centre
     if (~foot).any() and share[~foot].max() - floor > MAX_RIVAL * rise:
         return float("nan")
-    w = share[lo_half:hi_half + 1] - floor - 0.5 * rise
-    return float((ts[lo_half:hi_half + 1] * w).sum() / w.sum())
+    return _centroid(ts[lo_half:hi_half + 1], share[lo_half:hi_half + 1], floor + 0.5 * rise)
 
 
 def peak_sd(ts: np.ndarray, agree: np.ndarray, groups: int = 8) -> float:
@@ -222,18 +218,27 @@ def peak_sd(ts: np.ndarray, agree: np.ndarray, groups: int = 8) -> float:
     interleaved subsets of the marked points (columns of ``agree``), each over the full
     profile's peak, times 1.5: the subsets share run a's points, and on simulated discs the
     unscaled sd fell short of the errors by 1.4 (RMS of their ratio, 18 discs)."""
-    share = agree.mean(axis=1)
+    floor, _, rise, lo, hi = _half_peak(agree.mean(axis=1))
+    members = np.arange(agree.shape[1]) % groups
+    subsets = [agree[lo:hi + 1, members == g].mean(axis=1) for g in range(groups)]
+    centres = [c for c in (_centroid(ts[lo:hi + 1], y, floor + 0.5 * rise) for y in subsets) if np.isfinite(c)]
+    return 1.5 * float(np.std(centres, ddof=1)) / np.sqrt(len(centres)) if len(centres) > 2 else np.inf
+
+
+def _half_peak(share: np.ndarray) -> tuple[float, int, float, int, int]:
+    """A profile's floor (its median), highest sample, rise above the floor, and the first and
+    last sample of the run around it above half that rise."""
     floor = float(np.median(share))
     k = int(np.argmax(share))
-    _, lo, hi = _extent(share - floor, k, 0.5 * (share[k] - floor))
-    members = np.arange(agree.shape[1]) % groups
-    level = floor + 0.5 * (share[k] - floor)
-    centres = []
-    for g in range(groups):  # eight subsets
-        w = np.maximum(agree[lo:hi + 1, members == g].mean(axis=1) - level, 0.0)
-        if w.sum() > 0:
-            centres.append(float((ts[lo:hi + 1] * w).sum() / w.sum()))
-    return 1.5 * float(np.std(centres, ddof=1)) / np.sqrt(len(centres)) if len(centres) > 2 else np.inf
+    rise = float(share[k]) - floor
+    _, lo, hi = _extent(share - floor, k, 0.5 * rise)
+    return floor, k, rise, lo, hi
+
+
+def _centroid(ts: np.ndarray, y: np.ndarray, level: float) -> float:
+    """Centroid of ``ts`` weighted by how far ``y`` rises above ``level`` (NaN if nowhere)."""
+    w = np.maximum(y - level, 0.0)
+    return float((ts * w).sum() / w.sum()) if w.sum() > 0 else float("nan")
 
 
 def _extent(y: np.ndarray, k: int, level: float) -> tuple[np.ndarray, int, int]:
