@@ -109,6 +109,10 @@ class Pair:
     # False for a pair with too few votes whose profile's peaks crowd (see _periodic): fitted from
     # wherever its handful of votes pointed, its curve's slope counts only once its alias is
     # fixed (one such pair's -1 mm/m among its neighbours' +2..+11 bent the chain by 0.2 m)
+    # Nor does a curve with fewer than two windows that found an along-track offset: its slope
+    # along the track is point-to-plane's, which means nothing there (a ring-jointed tube's pair
+    # whose windows found none gave 0 mm/m among neighbours' +10..+16 and put the prediction
+    # 0.3 m, 2-3 sd, off for 100 m)
     rate_trusted: bool = True
     # (k,) whether the chain may fix each candidate: the matcher's own fit, or a peak that stands
     # out within a period too (see _candidates); the others only compete
@@ -255,49 +259,20 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     times = (o.info.get("time_a", np.nan), o.info.get("time_b", np.nan))
     if not np.isfinite(times).all() or o.run_b not in trajectories or o.run_a not in trajectories:
         return None
-    # scipy.signal takes ~1 s to import: not at `railtraj --help`
-    from scipy.signal import find_peaks, peak_prominences
-
-    fitness = np.asarray(prof["fitness"], float)
-    if not len(fitness) or (fitness.max() < options.min_fitness and prof.get("source") != "marks"):
-        return NO_EVIDENCE  # the pair's clouds hardly meet at any shift
-    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
-    misfit = np.maximum(1.0 - fitness, 1e-3)
-    # candidates are the significant peaks only: a profile's noise is no alias. A peak stands
-    # out when it rises above the higher dip beside it by min_significance counting sd (the
-    # fitness is a share of the profile's points: binomial noise)
-    peaks, props = find_peaks(fitness, prominence=0.0)  # (a peak on the window's edge is no peak)
-    n_points = float(prof.get("points", 2000))
-    significant = props["prominences"] >= options.min_significance * _counting_noise(
-        fitness, peaks, props["prominences"], n_points)
-    # ... and another alias than the matcher's own fit is one to move to only if it also stands
-    # out against the dips within min_period either side (aliases lie a period apart, so a
-    # real one falls off within a period). Against the whole window, the top sample of a flat
-    # profile rose over the falls at the window's ends, and the chain moved a ring-jointed
-    # tube's pair 1.00 m onto it: 21 cm off, claiming 1.6 cm. Such a peak still competes (a
-    # rival that keeps a pair from being fixed): dropped, it let the chain fix a demo pair 24 cm off
-    within = 2 * int(np.ceil(options.min_period / prof["step"])) + 1
-    with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
-        warnings.simplefilter("ignore", RuntimeWarning)
-        local = peak_prominences(fitness, peaks, wlen=within)[0]
-    movable = local >= options.min_significance * _counting_noise(fitness, peaks, local, n_points)
-    peaks, movable = peaks[significant], movable[significant]
-    if len(peaks):
-        keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
-        peaks, movable = peaks[keep], movable[keep]
-    if not len(peaks):
+    found = _profile_peaks(prof, options)
+    edges = _profile_peaks(o.info["edge_profile"], options) if "edge_profile" in o.info else None
+    if edges is not None and len(edges[0]) >= 2 and _periodic(edges[0], options.min_period) and (
+            found is None or len(found[0]) <= 1 or not _periodic(found[0], options.min_period)):
+        # the edges' own profile shows aliases a period apart where the fitness profile shows
+        # one peak at most, or peaks that crowd (its noise): edges too thin for the fitness repeat
+        # there (a tube's ring joints, railtraj.matching.piecewise.edge_profile). The fitness's
+        # one peak was the top of its slope, 3.7 m from the windows
+        found = edges
+    if found is None:
         return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
-    order = np.argsort(misfit[peaks])[: options.max_candidates]
-    peaks, movable = peaks[order], movable[order]
-    shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
-    # a peak closer to the matcher's own fit than a quarter period is that fit (its windows
-    # place it better than the profile's 5 cm steps)
-    shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
-    shift, first = np.unique(shift, return_index=True)
-    peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
+    shift, movable, m = found
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
-    m = misfit[peaks]
     axis = np.asarray(pw["axis"], float)
     traj_b = trajectories[o.run_b]
     direction, prior_var = _along_frame(o, trajectories)
@@ -310,7 +285,62 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
-                rate_trusted="few_votes" not in o.info or _periodic(shift, options.min_period), movable=movable)
+                rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
+                and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable)
+
+
+def _profile_peaks(prof: dict, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The significant peaks of an along-track profile (``info["alias_profile"]`` or
+    ``info["edge_profile"]``): their shifts from the matcher's fit (0: that fit), whether the
+    chain may move the pair onto each, and their misfits; None where no peak stands out."""
+    # scipy.signal takes ~1 s to import: not at `railtraj --help`
+    from scipy.signal import find_peaks, peak_prominences
+
+    fitness = np.asarray(prof["fitness"], float)
+    if not len(fitness) or not np.isfinite(fitness).all() or (
+            fitness.max() < options.min_fitness and prof.get("source") != "marks"):
+        return None  # the pair's clouds hardly meet at any shift
+    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
+    misfit = np.maximum(1.0 - fitness, 1e-3)
+    # candidates are the significant peaks only: a profile's noise is no alias. A peak stands
+    # out when it rises above the higher dip beside it by min_significance counting sd (the
+    # fitness is a share of the profile's points: binomial noise)
+    peaks, props = find_peaks(fitness, prominence=0.0)  # (a peak on the window's edge is no peak)
+    n_points = float(prof.get("points", 2000))
+    measured = np.asarray(prof.get("noise", []), float)  # an edge profile's: its costs are no counts
+
+    def noise(prominence: np.ndarray) -> np.ndarray:
+        if len(measured) == len(fitness):  # the peak's and its dip's errors (about as large)
+            return np.sqrt(2.0) * measured[peaks]
+        return _counting_noise(fitness, peaks, prominence, n_points)
+
+    significant = props["prominences"] >= options.min_significance * noise(props["prominences"])
+    # ... and another alias than the matcher's own fit is one to move to only if it also stands
+    # out against the dips within min_period either side (aliases lie a period apart, so a
+    # real one falls off within a period). Against the whole window, the top sample of a flat
+    # profile rose over the falls at the window's ends, and the chain moved a ring-jointed
+    # tube's pair 1.00 m onto it: 21 cm off, claiming 1.6 cm. Such a peak still competes (a
+    # rival that keeps a pair from being fixed): dropped, it let the chain fix a demo pair 24 cm off
+    within = 2 * int(np.ceil(options.min_period / prof["step"])) + 1
+    with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
+        warnings.simplefilter("ignore", RuntimeWarning)
+        local = peak_prominences(fitness, peaks, wlen=within)[0]
+    movable = local >= options.min_significance * noise(local)
+    peaks, movable = peaks[significant], movable[significant]
+    if len(peaks):
+        keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
+        peaks, movable = peaks[keep], movable[keep]
+    if not len(peaks):
+        return None
+    order = np.argsort(misfit[peaks])[: options.max_candidates]
+    peaks, movable = peaks[order], movable[order]
+    shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
+    # a peak closer to the matcher's own fit than a quarter period is that fit (its windows
+    # place it better than the profile's 5 cm steps)
+    shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
+    shift, first = np.unique(shift, return_index=True)
+    peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
+    return shift, movable, misfit[peaks]
 
 
 def _counting_noise(fitness: np.ndarray, peaks: np.ndarray, prominence: np.ndarray, n_points: float) -> np.ndarray:

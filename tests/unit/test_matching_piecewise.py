@@ -14,8 +14,10 @@ import pytest
 
 from railtraj.matching.piecewise import (
     Piecewise,
+    alias_ratio,
     along_costs,
     along_profile,
+    edge_profile,
     fit_curve,
     piecewise_fit,
     reference_tree,
@@ -283,3 +285,39 @@ def test_marks_in_the_intensity_place_the_windows_of_a_plain_tube():
     x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
     assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.02
     assert np.sqrt(fit.cov[0, 0]) >= 0.01  # a mark's window is known to centimetres, not millimetres
+
+
+def _ring_jointed(x0: float, x1: float, seed: int, spacing: float = 1.25) -> np.ndarray:
+    """A plain tube scanned on lines 2 cm apart whose lining steps 2.5 cm inwards over an
+    8 cm ring joint every ``spacing`` metres (a segmental lining; floor left plain)."""
+    xyz = _scanned(x0, x1, seed, 0.007 * seed, features=False, spacing=0.02)
+    joint = (xyz[:, 0] % spacing < 0.08) & (xyz[:, 2] > 0.3)
+    inward = np.column_stack([np.zeros(len(xyz)), -xyz[:, 1], np.full(len(xyz), 2.0) - xyz[:, 2]])
+    xyz[joint] += 0.025 * inward[joint] / np.linalg.norm(inward[joint], axis=1, keepdims=True)
+    return xyz
+
+
+def test_the_edge_profile_shows_the_ring_joints_the_fitness_profile_misses():
+    """Ring joints every 1.25 m and nothing else, the votes 1.25 m off (an alias): the windows
+    find valleys there, the fitness profile (points within 5 cm) shows no alias, and the edge
+    profile shows one every ring spacing, the truth among them, with its own noise."""
+    from railtraj.alongtrack import AlongTrackOptions, _profile_peaks
+
+    a_xyz, b_true = _ring_jointed(0, 24, 0), _ring_jointed(0, 24, 10)
+    d0 = np.array([0.4, 0.02, -0.01])
+    b_xyz = b_true - d0
+    start = d0 + 1.25 * AXIS
+    target = build_target(a_xyz)
+    fit = piecewise_fit(target, a_xyz, b_xyz, start, length=5.0, tree=reference_tree(a_xyz))
+    assert (fit.windows[:, 5] == 1).sum() >= 3 and abs(fit.d_ref[0] - start[0]) < 0.03  # on the alias
+    options = AlongTrackOptions()
+    _, _, fitness = alias_ratio(target, b_xyz, fit, start, 3.0)
+    seen = _profile_peaks(fitness, options)
+    assert seen is None or len(seen[0]) <= 1
+    edges = edge_profile(target, reference_tree(a_xyz), b_xyz, fit, start, 3.0, tau=0.05)
+    assert len(edges["noise"]) == len(edges["fitness"]) and edges["source"] == "edges"
+    shift, movable, misfit = _profile_peaks(edges, options)
+    lattice = -1.25 * np.round(-shift / 1.25)
+    assert len(shift) >= 3 and movable.all()
+    np.testing.assert_allclose(shift, lattice, atol=0.05)  # every peak is a ring joint away
+    assert np.isin([-1.25, 0.0, 1.25], np.round(lattice, 2)).all()  # the truth (-1.25) among them
