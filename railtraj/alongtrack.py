@@ -56,6 +56,7 @@ class AlongTrackOptions:
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
+    anchor_sd: float = 0.25         # m: the trajectories anchor the chain where their along-track sd is at most this
     cycle_radius: float = 15.0      # m: ok pairs of three runs this close are checked for closure
     evidence_ratio: float = 1.25    # a misfit ratio worth 3 sigma of evidence against a candidate
     max_evidence: float = 9.0       # ... and no candidate is charged more than that (3 sigma)
@@ -558,8 +559,8 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
     random walk of density ``walks`` per step (:func:`_rate_walks`: the drift's bend as white noise, as in the
     adjustment's smoothness), so the offset between two pairs follows the rate the pairs
     around them agree on, not just the mean of two. Observed at every pair: its measured rate
-    (``rate_sd``), the offset as 0 +- the trajectories' sd, and its fixed candidate at fixed
-    pairs.
+    (``rate_sd``), the offset as 0 +- the trajectories' sd where that is at most ``anchor_sd``,
+    and its fixed candidate at fixed pairs.
 
     A rate more than ``rate_gate`` sd off what the chain expects is one stray window bending a
     pair's curve (16 mm/m against its neighbours' 1-5 mm/m, on a pair whose own fit was 24 cm
@@ -584,7 +585,12 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
         gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)
         inflate = max(1.0, options.prior_correlation / max(gap, 1.0)) if np.isfinite(gap) else 1.0
         rate = p.rate if p.rate_trusted or np.isfinite(fixed[i]) else np.nan
-        for row, z, r in ((1, rate, options.rate_sd**2), (0, 0.0, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
+        # the trajectories anchor the offset only where they are sure of it (GNSS: the portals).
+        # Deeper in, their error is one drift seen at every pair, which no inflation counts once:
+        # in a 200 m tube whose offset rose to 0.64 m (prior sd 0.23-0.44 m) it held the
+        # prediction 0.2 m, 2.4 sd, towards zero, and three pairs went unfixed
+        prior = 0.0 if p.prior_var <= options.anchor_sd**2 else np.nan
+        for row, z, r in ((1, rate, options.rate_sd**2), (0, prior, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
             if not np.isfinite(z):
                 continue
             s = P[row, row] + r

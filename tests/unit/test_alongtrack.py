@@ -534,3 +534,24 @@ def test_aliases_only_the_edge_profile_shows_are_resolved():
         offsets[k] = replace(offsets[k], info={key: v for key, v in offsets[k].info.items() if key != "edge_profile"})
     out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
     assert not any(out[k].info["alongtrack"]["resolved"] for k in aliases)
+
+
+def test_the_trajectories_anchor_the_chain_only_where_they_are_sure(monkeypatch):
+    """The offset rises to 0.6 m in mid-tunnel where the runs report 0.3 m each (a 1.4 sd
+    drift), and the pairs next to the portals have no edges (no rate, no along-track fit).
+    Counted at every pair, the reported sd pulled the prediction towards zero and no pair in
+    between was fixed; anchoring only where GNSS is sure (``anchor_sd``), all of them are, on
+    the truth."""
+    rise = lambda s: 0.6 * np.sin(np.pi * np.clip((np.asarray(s, float) - 50.0) / 300.0, 0, 1)) ** 2  # noqa: E731
+    aliases = {3: 0.6, 4: -0.6, 5: 0.6, 6: -0.6, 7: 0.6, 8: 1.5}
+    monkeypatch.setattr(sys.modules[__name__], "_true_along", rise)
+    for anchor_sd, fixed in ((0.25, True), (1e3, False)):
+        offsets, trajs, s = _chain(aliases, statuses={0: "ok", 11: "ok"}, sd_mid=0.3, unique_every=1000)
+        for k in (1, 2, 9, 10):  # no edges in their windows: no rate, no along-track fit
+            pw = dict(offsets[k].info["piecewise"], windows=[[0.0] * 6] * 4, fit_cov=(np.diag([10.0, 0.003, 0.003]) ** 2).tolist())
+            offsets[k] = replace(offsets[k], info=dict(offsets[k].info, piecewise=pw))
+        out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(anchor_sd=anchor_sd))
+        middle = [out[k] for k in range(3, 9)]
+        assert all(o.status in ("ok", "coarse") for o in middle) == fixed, [o.status for o in middle]
+        for k in range(3, 9):
+            assert out[k].status not in ("ok", "coarse") or abs(out[k].d[0] - rise(s[k])) < 0.01
