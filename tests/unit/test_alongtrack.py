@@ -555,3 +555,18 @@ def test_the_trajectories_anchor_the_chain_only_where_they_are_sure(monkeypatch)
         assert all(o.status in ("ok", "coarse") for o in middle) == fixed, [o.status for o in middle]
         for k in range(3, 9):
             assert out[k].status not in ("ok", "coarse") or abs(out[k].d[0] - rise(s[k])) < 0.01
+
+
+@pytest.mark.parametrize(("placed_by", "sd_at_least"), [(2, 0.03), (1, 0.0)])
+def test_a_pair_fixed_on_two_windows_placed_by_marks_is_given_3_cm(placed_by, sd_at_least):
+    """Two windows placed by intensity marks cannot check each other, and such a window was now
+    and then 6-13 cm off: a pair resting on them is fixed (the alias is sure) but enters the
+    adjustment with 3 cm along the track at least. Two geometric windows are not widened."""
+    offsets, trajs, s = _chain({}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    pw = dict(offsets[4].info["piecewise"], windows=[[-5.0, 0, 0, 0, 1, placed_by], [5.0, 0, 0, 0, 1, placed_by]])
+    offsets[4] = replace(offsets[4], status="ambiguous", info=dict(offsets[4].info, piecewise=pw))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[4].status in ("ok", "coarse") and abs(out[4].d[0] - _true_along(s[4:5])[0]) < 0.01
+    assert (np.sqrt(out[4].cov[0, 0]) >= sd_at_least) and (placed_by == 1 or out[4].status == "coarse")
+    if placed_by == 1:
+        assert np.sqrt(out[4].cov[0, 0]) < 0.02
