@@ -221,8 +221,23 @@ def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray,
         starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
         for k, t in enumerate(ts):  # a few dozen shifts, each vectorised over all neighbours
             cost[k, owner[starts]] = np.minimum(np.minimum.reduceat(nn2 - 2.0 * t * along + t * t, starts), tau * tau)
+    return _informative_half(cost)
+
+
+def _informative_half(cost: np.ndarray) -> np.ndarray:
+    """The columns (points) of a (shifts, points) cost table whose cost changes most over the
+    shifts, the upper half by sd: points on plain walls slide along themselves and add noise."""
+    if not cost.shape[1]:
+        return cost
     spread = cost.std(axis=0)
     return cost[:, spread >= np.median(spread)]
+
+
+def _subset_means(cost: np.ndarray, groups: int) -> np.ndarray:
+    """(shifts, groups) mean cost of ``groups`` interleaved subsets of the points (columns):
+    how much a profile owes to which points happened to be sampled."""
+    members = np.arange(cost.shape[1]) % groups
+    return np.column_stack([cost[:, members == g].mean(axis=1) for g in range(groups)])
 
 
 def valley_significance(ts: np.ndarray, costs: np.ndarray, groups: int = 8) -> float:
@@ -245,8 +260,7 @@ def valley_significance(ts: np.ndarray, costs: np.ndarray, groups: int = 8) -> f
     """
     G = np.vander(ts - ts.mean(), 3, increasing=True)
     half = 0.5 * np.ptp(ts)
-    members = np.arange(costs.shape[1]) % groups
-    means = np.column_stack([costs.mean(axis=1)] + [costs[:, members == g].mean(axis=1) for g in range(groups)])
+    means = np.column_stack([costs.mean(axis=1), _subset_means(costs, groups)])
     rises = np.linalg.lstsq(G, means, rcond=None)[0][2] * half**2
     profile = means[:, 0]
     ripple = np.sqrt(np.mean(np.diff(profile) ** 2) / 2)
@@ -581,13 +595,12 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
     lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
     ts = step * np.arange(np.floor(lo / step) - 1, np.ceil(hi / step) + 2)
     kept = moved[target.inside(moved + ts[0] * fit.axis, 0.3) & target.inside(moved + ts[-1] * fit.axis, 0.3)]
-    dist, _ = tree.query((kept[:, None, :] + ts[None, :, None] * fit.axis).reshape(-1, 3), distance_upper_bound=tau)
-    cost = (np.minimum(dist, tau).reshape(len(kept), len(ts)) / tau) ** 2
-    cost = cost[cost.std(axis=1) >= np.median(cost.std(axis=1))] if len(cost) else cost
-    profile = {"axis": fit.axis.tolist(), "start": float(ts[0]), "step": step, "points": len(cost), "source": "edges"}
-    if len(cost) < 2 * groups:
+    # (along_costs' cylinder search is built for the windows' +-10 cm; over metres a query per
+    # shift is cheaper)
+    dist, _ = tree.query((kept[None, :, :] + ts[:, None, None] * fit.axis).reshape(-1, 3), distance_upper_bound=tau)
+    cost = _informative_half((np.minimum(dist, tau).reshape(len(ts), len(kept)) / tau) ** 2)
+    profile = {"axis": fit.axis.tolist(), "start": float(ts[0]), "step": step, "points": cost.shape[1], "source": "edges"}
+    if cost.shape[1] < 2 * groups:
         return {**profile, "fitness": [], "noise": []}
-    member = np.arange(len(cost)) % groups
-    subsets = np.array([cost[member == g].mean(axis=0) for g in range(groups)])
-    return {**profile, "fitness": (1.0 - cost.mean(axis=0)).tolist(),
-            "noise": (subsets.std(axis=0, ddof=1) / np.sqrt(groups)).tolist()}
+    return {**profile, "fitness": (1.0 - cost.mean(axis=1)).tolist(),
+            "noise": (_subset_means(cost, groups).std(axis=1, ddof=1) / np.sqrt(groups)).tolist()}

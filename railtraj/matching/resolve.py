@@ -168,12 +168,13 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ia, ib = ia[keep], ib[keep]
     degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
     info["degenerate_fit"] = degenerate  # also when ambiguous: should the chain fix it, it is coarse
-    if (rival >= s.ambiguity_ratio or few_votes or degenerate) and len(fit.windows) and (fit.windows[:, 5] == 1).any():
+    ambiguous = rival >= s.ambiguity_ratio or (few_votes and not degenerate)
+    if (ambiguous or degenerate) and len(fit.windows) and (fit.windows[:, 5] == 1).any():
         # left to the chain along the track: it needs the aliases edges too thin for the
         # fitness profile repeat on (ring joints)
         info["edge_profile"] = edge_profile(target, tree, tile_b.xyz[inside], fit, votes.center, votes.window,
                                             s.fitness_radius)
-    if rival >= s.ambiguity_ratio or (few_votes and not degenerate):
+    if ambiguous:
         cov = fit.cov + votes.window**2 * np.outer(fit.axis, fit.axis)
         return failed(tile_a, tile_b, "ambiguous", info, fit.d_ref, cov, inliers=len(ia))
     if degenerate:
