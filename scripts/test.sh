@@ -6,4 +6,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/ruff check railtraj plugins tests benchmarks
-exec .venv/bin/python -m pytest -n auto --dist loadscope "$@"
+exec .venv/bin/python -m pytest -n auto --dist loadscope --durations=15 "$@"

@@ -106,11 +106,14 @@ def prior(model: CorrectionModel, run_id: str, sd_at_knots: np.ndarray, extra_co
                     whiten, robust=False)
 
 
-def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float, relax: np.ndarray | None = None) -> Block:
+def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float | np.ndarray,
+               relax: np.ndarray | None = None) -> Block:
     """Second differences of consecutive knots ``= 0``.
 
     The drift's bend along the track is modelled as white noise of density ``curvature_sd``
-    (m/m^1.5): over knots ``h`` metres apart a second difference has sd ``curvature_sd * h^1.5``.
+    (m/m^1.5; one value, or one per second difference and axis, (n_knots - 2, 3): see
+    :mod:`railtraj.adjust.stiffness`): over knots ``h`` metres apart a second difference has sd
+    ``curvature_sd * h^1.5``.
     A constant drift rate costs nothing; a change of rate is what is penalised. Per metre, not per
     second: a tunnel's drift grows from portal to portal over the tunnel's length whatever the
     speed (a smoother ties both ends), so a fast run's drift bends no faster along the track.
@@ -123,9 +126,11 @@ def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float, relax: 
                         np.zeros((0, 3)), np.zeros((0, 3, 3)), robust=False)
     k = rk.first + np.arange(rk.count - 2)
     h = model.knot_metres(run_id)
-    sd = np.maximum(curvature_sd * (0.5 * (h[:-1] + h[1:])) ** 1.5, 1e-6)
+    density = np.broadcast_to(np.asarray(curvature_sd, float).reshape(-1, 3) if np.ndim(curvature_sd)
+                              else np.full((1, 3), curvature_sd), (len(k), 3))
+    sd = np.maximum(density * ((0.5 * (h[:-1] + h[1:])) ** 1.5)[:, None], 1e-6)
     n = len(k)
     whiten = isotropic(sd) if relax is None else from_covariance(
-        (sd**2)[:, None, None] * (np.eye(3) + relax[1:-1]))
+        np.einsum("ni,nij,nj->nij", sd, np.eye(3) + relax[1:-1], sd))
     return assemble("smoothness", model.n_unknowns, np.column_stack([k, k + 1, k + 2]),
                     np.tile([1.0, -2.0, 1.0], (n, 1)), np.zeros((n, 3)), whiten, robust=False)

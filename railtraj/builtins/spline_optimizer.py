@@ -30,6 +30,7 @@ from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, usable_offset
 from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
+from railtraj.adjust.stiffness import bend_density
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
 from railtraj.sd_check import covariance_at, widened_sd
@@ -46,6 +47,7 @@ class SplineConfig:
     knot_spacing: float = 5.0          # distance between correction knots (knot_unit)
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
+    bend_from_reported_sd: bool = True  # per outage, raise that density until the model's prior reaches the run's sd
     max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor
     recentre: bool = True              # without control: runs' common correction at their sd-weighted average
     tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
@@ -77,6 +79,7 @@ class SplineOptimizer:
         cfg, t0 = self.config, time.perf_counter()
         model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit)
         widening = widening or {}
+        self._bends: dict[str, list[dict]] = {}
         blocks = [b for r in sorted(trajectories)
                   for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
         data = [self._ties(model, ties), self._offsets(model, offsets, trajectories),
@@ -104,6 +107,7 @@ class SplineOptimizer:
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
+        self.diagnostics["bend_raised"] = self._bends
         with_control = any(b.kind == "control" and len(b) for b in data)
         if cfg.recentre and not with_control:
             out, shift = recentre(trajectories, out, claimed)
@@ -121,9 +125,14 @@ class SplineOptimizer:
         sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
         correlated = max(cfg.prior_correlation / cfg.knot_spacing, 1.0)
         per_knot = correlated ** _drift_share(sd, cfg.gnss_sd_m, cfg.drift_sd_m)
+        prior_sd = sd * np.sqrt(per_knot)[:, None]
+        density = cfg.drift_curvature_sd
+        if cfg.bend_from_reported_sd and model.runs[run_id].count >= 3:
+            density, outages = bend_density(density, model.knot_metres(run_id), prior_sd, sd, cfg.gnss_sd_m)
+            self._bends[run_id] = [{**o, "metres": [round(float(model.runs[run_id].knot_distance[o[k]]), 1)
+                                                    for k in ("first_knot", "last_knot")]} for o in outages]
         if widening is None:
-            return [obs.prior(model, run_id, sd * np.sqrt(per_knot)[:, None]),
-                    obs.smoothness(model, run_id, cfg.drift_curvature_sd)]
+            return [obs.prior(model, run_id, prior_sd), obs.smoothness(model, run_id, density)]
         extra = covariance_at(times, traj.time, widening)
         # where a GNSS bias widened it, the run's error is not the INS drift the smoothness models:
         # it may bend more in the widened directions, as its sd grew there but at most
@@ -132,8 +141,8 @@ class SplineOptimizer:
         room = (cfg.max_bend_widening**2 - 1.0) / np.maximum(np.trace(relax, axis1=1, axis2=2), 1e-12)
         relax = relax * np.minimum(1.0, room)[:, None, None]
         # a GNSS bias found by the sd check spans tens of metres: counted once per correlation length
-        return [obs.prior(model, run_id, sd * np.sqrt(per_knot)[:, None], extra * correlated),
-                obs.smoothness(model, run_id, cfg.drift_curvature_sd, relax)]
+        return [obs.prior(model, run_id, prior_sd, extra * correlated),
+                obs.smoothness(model, run_id, density, relax)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]

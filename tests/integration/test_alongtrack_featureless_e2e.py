@@ -1,0 +1,42 @@
+"""End to end on the demo's 1 km mixed tunnel built with commensurate ribs (1.5 m) and sleepers
+(0.6 m): its featureless circular section is 170 m long, and the pairs at its edges are where an
+alias was once accepted. Against the truth: every run pair ten times closer, no ``ok`` offset
+more than 5 cm off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from alongtrack_runs import _run
+
+from railtraj.sim import generate
+from railtraj.sim.scenarios import get_scenario
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def mixed_commensurate(tmp_path_factory) -> Path:
+    scn = get_scenario("mixed")
+    scn = replace(scn, geometry=replace(scn.geometry, rib_spacing=1.5, sleeper_spacing=0.6))
+    return generate(scn, tmp_path_factory.mktemp("mixed_commensurate"), seed=31).survey_dir
+
+
+def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensurate, tmp_path):
+    """Before session 10 a pair at the edge of the circular section came out ok 9.0 cm off: the
+    matcher called it ambiguous (3 of its 5 windows agreed, 5 cm from the others), and the chain
+    made it ok when it fixed its alias. It is coarse now, with its windows' spread as its sd.
+    Until session 20 the windows of the circular section gave along-track offsets their flat
+    profiles did not have, and bent the curves of the pairs at its ends: 0.224 m inter-run at
+    most (0.11 of the input's), 0.097 m since they give across and up only."""
+    metrics = _run(mixed_commensurate, tmp_path / "out")
+    for key, before in metrics["truth"]["before"]["consistency"].items():
+        after = metrics["truth"]["after"]["consistency"][key]
+        assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"], key
+    score = metrics["truth"]["tile_offsets"]
+    assert score["ok_pairs"] >= 15
+    assert max(score["max_abs_m"]) <= 0.05, score
+    assert sum(r["status"] == "coarse" for r in metrics["adjustment"]["alongtrack"]) >= 5
