@@ -50,7 +50,7 @@ class AlongTrackOptions:
     enabled: bool = True
     rate_sd: float = 0.003          # m/m: error of a pair's measured drift rate
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
-    rate_walk: float = 0.0005       # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
+    rate_walk: float = 0.001        # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma

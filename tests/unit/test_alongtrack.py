@@ -550,7 +550,9 @@ def test_the_trajectories_anchor_the_chain_only_where_they_are_sure(monkeypatch)
         for k in (1, 2, 9, 10):  # no edges in their windows: no rate, no along-track fit
             pw = dict(offsets[k].info["piecewise"], windows=[[0.0] * 6] * 4, fit_cov=(np.diag([10.0, 0.003, 0.003]) ** 2).tolist())
             offsets[k] = replace(offsets[k], info=dict(offsets[k].info, piecewise=pw))
-        out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(anchor_sd=anchor_sd))
+        # the walk of session 23 (0.5 mm/m per sqrt m): this test is about the anchors; with 1.0
+        # the prediction across the two pairs without rates is too vague for 0.6 m aliases
+        out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(anchor_sd=anchor_sd, rate_walk=0.0005))
         middle = [out[k] for k in range(3, 9)]
         assert all(o.status in ("ok", "coarse") for o in middle) == fixed, [o.status for o in middle]
         for k in range(3, 9):
