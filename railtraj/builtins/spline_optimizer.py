@@ -129,8 +129,9 @@ class SplineOptimizer:
         density = cfg.drift_curvature_sd
         if cfg.bend_from_reported_sd and model.runs[run_id].count >= 3:
             density, outages = bend_density(density, model.knot_metres(run_id), prior_sd, sd, cfg.gnss_sd_m)
-            self._bends[run_id] = [{**o, "metres": [round(float(model.runs[run_id].knot_distance[o[k]]), 1)
-                                                    for k in ("first_knot", "last_knot")]} for o in outages]
+            if outages:  # metrics.json: adjustment.bend_raised, per run the outages raised
+                self._bends[run_id] = [{**o, "metres": [round(float(model.runs[run_id].knot_distance[o[k]]), 1)
+                                                        for k in ("first_knot", "last_knot")]} for o in outages]
         if widening is None:
             return [obs.prior(model, run_id, prior_sd), obs.smoothness(model, run_id, density)]
         extra = covariance_at(times, traj.time, widening)
