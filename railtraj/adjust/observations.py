@@ -126,8 +126,7 @@ def smoothness(model: CorrectionModel, run_id: str, curvature_sd: float | np.nda
                         np.zeros((0, 3)), np.zeros((0, 3, 3)), robust=False)
     k = rk.first + np.arange(rk.count - 2)
     h = model.knot_metres(run_id)
-    density = np.broadcast_to(np.asarray(curvature_sd, float).reshape(-1, 3) if np.ndim(curvature_sd)
-                              else np.full((1, 3), curvature_sd), (len(k), 3))
+    density = np.broadcast_to(np.asarray(curvature_sd, float), (len(k), 3))
     sd = np.maximum(density * ((0.5 * (h[:-1] + h[1:])) ** 1.5)[:, None], 1e-6)
     n = len(k)
     whiten = isotropic(sd) if relax is None else from_covariance(

@@ -47,15 +47,15 @@ def bend_density(base: float, knot_metres: np.ndarray, prior_sd: np.ndarray, rep
     span = (0.5 * (knot_metres[:-1] + knot_metres[1:])) ** 1.5  # as in observations.smoothness
     horizontal = np.sqrt(np.mean(reported_sd[:, :2] ** 2, axis=1))
     outages = []
-    for first, last in _stretches(horizontal > gnss_sd_m):
+    for first, last in stretches(horizontal > gnss_sd_m):
         rows = np.arange(max(first - 1, 0), min(last - 1, n - 3) + 1)  # bends centred in the outage
         if not len(rows):
             continue
+        raised = np.zeros(len(q), bool)
+        raised[rows] = True
         factor = np.ones(3)
         for axis in range(3):
             peak = first + int(np.argmax(reported_sd[first:last + 1, axis]))
-            raised = np.zeros(len(q), bool)
-            raised[rows] = True
             prior_at_peak = partial(_raised_prior_sd, raised=raised, bend_sd=q[:, axis] * span,
                                     prior_sd=prior_sd[:, axis], knot=peak)
             factor[axis] = _raise_until(prior_at_peak, float(reported_sd[peak, axis]))
@@ -89,8 +89,8 @@ def _raised_prior_sd(factor: float, raised: np.ndarray, bend_sd: np.ndarray, pri
     return float(_prior_marginal_sd(np.where(raised, factor, 1.0) * bend_sd, prior_sd)[knot])
 
 
-def _stretches(mask: np.ndarray) -> list[tuple[int, int]]:
-    """First and last index of each run of True in ``mask``."""
+def stretches(mask: np.ndarray) -> list[tuple[int, int]]:
+    """First and last index of each run of True in ``mask`` (outages, spans without data)."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
     return [(int(a), int(b) - 1) for a, b in zip(edges[0::2], edges[1::2], strict=True)]
 

@@ -30,7 +30,7 @@ from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, usable_offset
 from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
-from railtraj.adjust.stiffness import bend_density
+from railtraj.adjust.stiffness import bend_density, stretches
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
 from railtraj.sd_check import covariance_at, widened_sd
@@ -213,10 +213,9 @@ class SplineOptimizer:
         sd = traj.sd.max(axis=1) if traj.sd is not None else np.full(len(param), cfg.default_sd_m)
         weak = (hi - lo > cfg.max_gap * model.spacing) & (sd > cfg.weak_span_sd_m)
         spans = []
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], weak.astype(np.int8), [0]])))
-        for i0, i1 in zip(edges[0::2], edges[1::2], strict=True):
-            span = {"run_id": run_id, "time_from": float(traj.time[i0]), "time_to": float(traj.time[i1 - 1]),
-                    "length": float(param[i1 - 1] - param[i0]), "max_input_sd_m": float(sd[i0:i1].max())}
+        for i0, last in stretches(weak):
+            span = {"run_id": run_id, "time_from": float(traj.time[i0]), "time_to": float(traj.time[last]),
+                    "length": float(param[last] - param[i0]), "max_input_sd_m": float(sd[i0:last + 1].max())}
             spans.append(span)
             log.warning("run %s, %.1f-%.1f s (%.0f %s): no tie, tile offset or control point; the correction "
                         "there is interpolated and rests on the trajectory's sd (up to %.2f m)", run_id,
