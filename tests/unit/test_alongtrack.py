@@ -572,3 +572,52 @@ def test_a_pair_fixed_on_two_windows_placed_by_marks_is_given_3_cm(placed_by, sd
     assert (np.sqrt(out[4].cov[0, 0]) >= sd_at_least) and (placed_by == 1 or out[4].status == "coarse")
     if placed_by == 1:
         assert np.sqrt(out[4].cov[0, 0]) < 0.02
+
+
+def _ring_jointed_tube(sleepers: float) -> tuple[list[TileOffset], dict[str, Trajectory], np.ndarray]:
+    """The chain of :func:`_chain` in a ring-jointed tube: each pair's profile peaks at every
+    1.5 m ring joint from the truth (some pairs sit on another joint), ``sleepers`` adds weaker
+    peaks every 0.5 m, and no pair between the portals' ``ok`` pairs measures a drift rate (its
+    windows found no along-track offset)."""
+    aliases = {2: 1.5, 4: -1.5, 5: 3.0, 7: 1.5}
+    offsets, trajs, s = _chain(aliases, statuses={0: "ok", 11: "ok"}, unique_every=1000)
+    rng = np.random.default_rng(5)
+    for k in range(1, 11):
+        prof = offsets[k].info["alias_profile"]
+        ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+        dist = lambda period: np.abs((ts + aliases.get(k, 0.0) + period / 2) % period - period / 2)  # noqa: B023, E731
+        fitness = (0.6 + 0.3 * np.exp(-((dist(1.5) / 0.04) ** 2)) + sleepers * np.exp(-((dist(0.5) / 0.04) ** 2))
+                   + rng.normal(0.0, 0.002, len(ts)))
+        pw = dict(offsets[k].info["piecewise"], windows=[[0.0] * 6] * 4)
+        info = dict(offsets[k].info, piecewise=pw, alias_profile=dict(prof, fitness=fitness.tolist(), points=4000))
+        offsets[k] = replace(offsets[k], status="ambiguous", info=info)
+    return offsets, trajs, s
+
+
+@pytest.mark.parametrize(("sleepers", "fixed"), [(0.0, True), (0.05, False)])
+def test_an_alias_no_peak_shows_lies_a_whole_period_of_the_profile_away(sleepers, fixed):
+    """Without rates between the portals the prediction is vague (the rate walks 3 mm/m per
+    sqrt m). Where each pair's profile shows the ring joints every 1.5 m and nothing between,
+    an alias it shows no peak for lies 1.5 m away, not ``min_period``: every pair is fixed, on
+    the truth (with ``min_period`` none was). Where weaker peaks every 0.5 m show too (dropped
+    as candidates for their misfit), an alias may lie 0.5 m away and none is fixed."""
+    offsets, trajs, s = _ring_jointed_tube(sleepers)
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(rate_walk=0.003))
+    middle = out[2:10]
+    assert all(o.status in ("ok", "coarse") for o in middle) == fixed, [o.status for o in middle]
+    assert fixed or all(o.status == "ambiguous" for o in middle)
+    for k, o in enumerate(out):
+        assert o.status not in ("ok", "coarse") or abs(o.d[0] - _true_along(s[k : k + 1])[0]) < 0.01
+
+
+@pytest.mark.parametrize(("peaks", "period"), [
+    ([-3.0, 3.0], 3.0),  # and the matcher's own fit: a 3.0 m combination
+    ([-1.5, 1.49, 3.02], 1.5),
+    ([1.5], 0.5),  # two peaks tell no period
+    ([-3.0, -1.5, 0.6, 1.5, 3.0], 0.5),  # sleepers between the ribs
+    ([-0.3, 0.3], 0.5),  # closer than min_period: noise
+])
+def test_a_profiles_alias_period_is_the_spacing_of_its_evenly_spaced_peaks(peaks, period):
+    from railtraj.alongtrack import _alias_period
+
+    assert _alias_period(np.array(peaks), 0.5) == pytest.approx(period, abs=0.02)
