@@ -54,6 +54,7 @@ class SplineConfig:
     offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
     max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
     use_weak_offsets: bool = True      # degenerate/ambiguous pairs constrain across and up
+    use_drift_rates: bool = True       # ... and their curve's change of offset along the track (info["drift_rate"])
     robust_confidence: float = 0.999   # chi-square level beyond which an observation is rejected
     default_sd_m: float = 1.0          # prior sd where the trajectory reports none
     prior_correlation: float = 500.0   # (knot_unit) length over which the reported sd is one independent error
@@ -83,7 +84,7 @@ class SplineOptimizer:
         blocks = [b for r in sorted(trajectories)
                   for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
         data = [self._ties(model, ties), self._offsets(model, offsets, trajectories),
-                self._control(model, control, trajectories)]
+                self._drift_rates(model, offsets, trajectories), self._control(model, control, trajectories)]
         data = [b for b in data if b is not None]
         if not any(len(b) for b in data):
             note = "optimizer spline: no ties, usable tile offsets or control; trajectories left unchanged"
@@ -180,6 +181,29 @@ class SplineOptimizer:
         labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
         return obs.assemble("offset", model.n_unknowns, knots, w, np.stack([o.d for o in use]),
                             obs.from_covariance(cov, cfg.max_weak_sd_m), labels=labels)
+
+    def _drift_rates(self, model: CorrectionModel, offsets: Sequence[TileOffset],
+                     trajectories: dict[str, Trajectory]) -> obs.Block | None:
+        """``[c_b(t_b1) - c_a(t_a1)] - [c_b(t_b0) - c_a(t_a0)] = change`` along the track: how
+        an unresolved pair's offset changes over its windows, whatever alias it sits on
+        (:func:`railtraj.alongtrack._with_drift_rate`)."""
+        use = [o for o in offsets if self.config.use_weak_offsets and self.config.use_drift_rates
+               and "drift_rate" in o.info and usable_offset(o, trajectories)]
+        if not use:
+            return None
+        rates = [o.info["drift_rate"] for o in use]
+        ends = [obs.relative(model, o.run_a, np.array(r["time_a"]), o.run_b, np.array(r["time_b"]))
+                for o, r in zip(use, rates, strict=True)]
+        knots = np.vstack([np.hstack([k[1], k[0]]) for k, _ in ends])  # the far end minus the near end
+        w = np.vstack([np.hstack([w[1], -w[0]]) for _, w in ends])
+        axis = np.array([r["axis"] for r in rates])
+        sd = np.hypot([r["sd_m"] for r in rates], self.config.offset_sd_floor_m)
+        whiten = np.zeros((len(use), 3, 3))
+        whiten[:, 0, :] = axis / sd[:, None]  # the track direction only
+        labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
+        labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
+        return obs.assemble("drift_rate", model.n_unknowns, knots, w, np.array([r["change"] for r in rates]),
+                            whiten, labels=labels)
 
     def _control(self, model: CorrectionModel, control: ControlObservations | None,
                  trajectories: dict[str, Trajectory]) -> obs.Block | None:

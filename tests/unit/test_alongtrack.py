@@ -621,3 +621,29 @@ def test_a_profiles_alias_period_is_the_spacing_of_its_evenly_spaced_peaks(peaks
     from railtraj.alongtrack import _alias_period
 
     assert _alias_period(np.array(peaks), 0.5) == pytest.approx(period, abs=0.02)
+
+
+def test_an_unresolved_pair_keeps_its_drift_rate_for_the_adjustment():
+    """Nothing is fixed (no anchor, no unique object), yet a pair whose windows span 20 m still
+    measures how the runs' offset changes there: its curve's change over that span goes to the
+    adjustment (``info["drift_rate"]``), on run b's times 10 m either side. Not for windows
+    spanning 6 m, nor for a degenerate fit (both scattered far more than their sd in simulated
+    tubes)."""
+    offsets, trajs, s = _chain({}, statuses={}, unique_every=1000)
+    for r, t in trajs.items():
+        trajs[r] = t.with_positions(t.xyz, np.full_like(t.sd, 5.0))
+    spans = {3: 20.0, 4: 6.0, 5: 20.0}
+    for k, span in spans.items():
+        windows = [[x, 0.0, 0.0, 0.0, 1.0, 1.0] for x in np.linspace(-span / 2, span / 2, 5)]
+        pw = dict(offsets[k].info["piecewise"], windows=windows)
+        offsets[k] = replace(offsets[k], status="degenerate" if k == 5 else "ambiguous",
+                             info=dict(offsets[k].info, piecewise=pw))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert all(o.status != "ok" for o in out)
+    assert [k for k, o in enumerate(out) if "drift_rate" in o.info] == [3]
+    rate = out[3].info["drift_rate"]
+    gradient = np.asarray(offsets[3].info["piecewise"]["gradient"])
+    np.testing.assert_allclose(rate["change"], 20.0 * gradient)
+    assert min(rate["time_b"]) < offsets[3].info["time_b"] < max(rate["time_b"])
+    np.testing.assert_allclose(np.abs(np.diff(rate["time_b"])), 20.0 / 12.0, rtol=0.01)  # run b at 12 m/s
+    assert 20.0 * 0.003 <= rate["sd_m"] < 20.0 * 0.005
