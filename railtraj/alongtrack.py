@@ -23,7 +23,8 @@ peak for too: a matcher's ``ok`` is no proof (on a sparse scanner an ``ok`` pair
 the nearest such alias, a multiple of that period away, competes at 3 sigma. Fixed pairs
 anchor the next round.
 
-What cannot be fixed stays ``ambiguous`` and is used across the track and in height only. This
+What cannot be fixed stays ``ambiguous`` and is used across the track and in height only, with
+the drift rate its windows measure where they span enough (``info["drift_rate"]``). This
 applies to ``ok`` pairs too: a pair the matcher found sure but the chain cannot confirm is
 demoted, never kept on a possible alias. A pair the matcher checked with too few votes
 (``few_votes``) is stricter still: used only once the chain fixes it, else ``no_consensus``.
@@ -545,7 +546,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             order = np.argsort(cost)
             best = int(order[0])
             runner_up = cost[order[1]] if len(cost) > 1 else np.inf
-            # an alias a multiple of the shortest period away may exist although the profile
+            # an alias a multiple of the pair's period away may exist although the profile
             # showed no peak there; the one nearest the prediction competes (worth max_evidence)
             period = p.period or options.min_period
             k = np.round((p.u[best] - mu[i]) / period)

@@ -10,6 +10,8 @@ observation at a time, and stacked into a :class:`Block` per kind:
   the drift itself, are penalised), sd from a drift model (see :func:`smoothness`);
 * ``tie``: ``c_b(t_b) - c_a(t_a) = x_a - x_b`` (a feature seen by two runs);
 * ``offset``: a weak tile pair ``c_b(t_b) - c_a(t_a) = d`` in its constrained directions only;
+* ``drift_rate``: how an unresolved pair's ``c_b - c_a`` changes between the ends of its windows,
+  along the track only (whatever alias the pair sits on);
 * ``control``: ``c_r(t) = X - seen`` (a surveyed point seen in a run's cloud).
 
 Each block also carries an information weight per observation (a tie of a pair with n ties

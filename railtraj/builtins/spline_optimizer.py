@@ -177,10 +177,8 @@ class SplineOptimizer:
         cov = np.stack([offset_covariance(o) for o in use]) + cfg.offset_sd_floor_m ** 2 * np.eye(3)
         # ok pairs with ties enter through their ties; an ok pair without (resolved jointly along
         # the track) enters here in full, a weak pair in its constrained directions only
-        labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
-        labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
         return obs.assemble("offset", model.n_unknowns, knots, w, np.stack([o.d for o in use]),
-                            obs.from_covariance(cov, cfg.max_weak_sd_m), labels=labels)
+                            obs.from_covariance(cov, cfg.max_weak_sd_m), labels=_pair_labels(use))
 
     def _drift_rates(self, model: CorrectionModel, offsets: Sequence[TileOffset],
                      trajectories: dict[str, Trajectory]) -> obs.Block | None:
@@ -200,10 +198,8 @@ class SplineOptimizer:
         sd = np.hypot([r["sd_m"] for r in rates], self.config.offset_sd_floor_m)
         whiten = np.zeros((len(use), 3, 3))
         whiten[:, 0, :] = axis / sd[:, None]  # the track direction only
-        labels = {k: np.array([getattr(o, k) for o in use], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
-        labels.update(time_a=np.array([o.info["time_a"] for o in use]), time_b=np.array([o.info["time_b"] for o in use]))
         return obs.assemble("drift_rate", model.n_unknowns, knots, w, np.array([r["change"] for r in rates]),
-                            whiten, labels=labels)
+                            whiten, labels=_pair_labels(use))
 
     def _control(self, model: CorrectionModel, control: ControlObservations | None,
                  trajectories: dict[str, Trajectory]) -> obs.Block | None:
@@ -261,6 +257,13 @@ class SplineOptimizer:
                 "observations": counts, "rejected": rejected, "gnc_iterations": sol.iterations,
                 "bandwidth": sol.banded.bandwidth, "under_constrained": spans, "seconds": round(seconds, 3),
                 "notes": []}
+
+
+def _pair_labels(offsets: Sequence[TileOffset]) -> dict[str, np.ndarray]:
+    """Columns naming each tile pair's observation in the diagnostics: runs, tiles, times."""
+    labels = {k: np.array([getattr(o, k) for o in offsets], dtype=object) for k in ("run_a", "run_b", "tile_a", "tile_b")}
+    labels.update(time_a=np.array([o.info["time_a"] for o in offsets]), time_b=np.array([o.info["time_b"] for o in offsets]))
+    return labels
 
 
 def _drift_share(sd: np.ndarray, gnss_sd_m: float, drift_sd_m: float) -> np.ndarray:
