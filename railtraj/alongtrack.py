@@ -185,7 +185,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
             out[pair.index] = _unresolved_use(out[pair.index])
             # (a rate its neighbours disagreed with, replaced by theirs, is no measurement of its own)
             if not resolved and pair.rate_trusted and pair.rate == own_rate[pair.index] and options.drift_rates:
-                out[pair.index] = _with_drift_rate(out[pair.index], trajectories, options)
+                out[pair.index] = _with_drift_rate(out[pair.index], pair, trajectories, options)
             report.append(_report_row(pair.index, o, out[pair.index].status, verdict, shift, margin, pair.shift,
                                       predicted=(m, v)))
     for k in _cycle_breaks(out, options):  # three runs: d_ab + d_bc must equal d_ac
@@ -356,15 +356,15 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
         local = peak_prominences(fitness, peaks, wlen=within)[0]
     movable = local >= options.min_significance * noise(local)
     peaks, movable = peaks[significant], movable[significant]
-    period = _alias_period(ts[peaks] + _vertex(fitness, peaks) * prof["step"], options.min_period)
+    shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]  # sub-sample, from the matcher's fit
+    period = _alias_period(shift, options.min_period)
     if len(peaks):
         keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
-        peaks, movable = peaks[keep], movable[keep]
+        peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
     if not len(peaks):
         return None
     order = np.argsort(misfit[peaks])[: options.max_candidates]
-    peaks, movable = peaks[order], movable[order]
-    shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]
+    peaks, movable, shift = peaks[order], movable[order], shift[order]
     # a peak closer to the matcher's own fit than a quarter period is that fit (its windows
     # place it better than the profile's 5 cm steps)
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
@@ -384,8 +384,7 @@ def _alias_period(shift: np.ndarray, min_period: float) -> float:
     the margin at 10 of 18 pairs whose joint nearest the prediction was right to 1-3 cm. Peaks
     dropped for their misfit count here: commensurate ribs and sleepers show their 3.0 m
     combination strongest, and the sleepers' 0.6 m between, weaker, keep the period short."""
-    shift = np.sort(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0))
-    gaps = np.diff(np.unique(shift))
+    gaps = np.diff(np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0)))
     if len(gaps) < 2:
         return min_period
     median = float(np.median(gaps))
@@ -430,11 +429,12 @@ def _rate_variance(pw: dict, options: AlongTrackOptions) -> float:
     return float(options.rate_sd**2 + np.linalg.pinv(design.T @ design)[1, 1] * options.window_sd**2)
 
 
-def _with_drift_rate(o: TileOffset, trajectories: dict[str, Trajectory], options: AlongTrackOptions) -> TileOffset:
+def _with_drift_rate(o: TileOffset, pair: Pair, trajectories: dict[str, Trajectory],
+                     options: AlongTrackOptions) -> TileOffset:
     """An unresolved pair with its curve's change of offset along the track, for the adjustment
     (``info["drift_rate"]``): the offset moves by ``gradient x L`` from ``half`` metres before its
     reference point to ``half`` after (``L = 2 half``, the span of its windows), whichever alias
-    it sits on, to the rate's sd times ``L`` along the track.
+    it sits on, to the rate's sd (``pair.rate_var``) times ``L`` along the track.
 
     Without it the adjustment has nothing along the track between fixed pairs and bridges the
     correction smoothly from one to the next. In a ring-jointed tube 280 m passed between two
@@ -451,7 +451,7 @@ def _with_drift_rate(o: TileOffset, trajectories: dict[str, Trajectory], options
     rate = {"time_a": [_time_after_shift(traj_a, o.info["time_a"], k * half * axis) for k in (-1.0, 1.0)],
             "time_b": [_time_after_shift(traj_b, o.info["time_b"], k * half * axis) for k in (-1.0, 1.0)],
             "change": (2.0 * half * gradient).tolist(), "axis": axis.tolist(),
-            "sd_m": 2.0 * half * float(np.sqrt(_rate_variance(pw, options)))}
+            "sd_m": 2.0 * half * float(np.sqrt(pair.rate_var or options.rate_sd**2))}
     return replace(o, info=dict(o.info, drift_rate=rate))
 
 

@@ -185,8 +185,9 @@ class SplineOptimizer:
         """``[c_b(t_b1) - c_a(t_a1)] - [c_b(t_b0) - c_a(t_a0)] = change`` along the track: how
         an unresolved pair's offset changes over its windows, whatever alias it sits on
         (:func:`railtraj.alongtrack._with_drift_rate`)."""
-        use = [o for o in offsets if self.config.use_weak_offsets and self.config.use_drift_rates
-               and "drift_rate" in o.info and usable_offset(o, trajectories)]
+        if not (self.config.use_weak_offsets and self.config.use_drift_rates):
+            return None
+        use = [o for o in offsets if "drift_rate" in o.info and usable_offset(o, trajectories)]
         if not use:
             return None
         rates = [o.info["drift_rate"] for o in use]
