@@ -1,7 +1,8 @@
-"""End to end on the demo's 1 km mixed tunnel built with commensurate ribs (1.5 m) and sleepers
-(0.6 m): its featureless circular section is 170 m long, and the pairs at its edges are where an
-alias was once accepted. Against the truth: every run pair ten times closer, no ``ok`` offset
-more than 5 cm off.
+"""End to end on the demo's mixed tunnel built with commensurate ribs (1.5 m) and sleepers
+(0.6 m), at 0.6 size (its featureless circular section 100 m long; 131 s against 248 s at full
+size, where it is 170 m): the pairs at that section's edges are where an alias was once
+accepted. Against the truth: every run pair ten times closer, no ``ok`` offset more than 5 cm
+off.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ pytestmark = pytest.mark.slow
 def mixed_commensurate(tmp_path_factory) -> Path:
     scn = get_scenario("mixed")
     scn = replace(scn, geometry=replace(scn.geometry, rib_spacing=1.5, sleeper_spacing=0.6))
-    return generate(scn, tmp_path_factory.mktemp("mixed_commensurate"), seed=31).survey_dir
+    return generate(scn, tmp_path_factory.mktemp("mixed_commensurate"), seed=31, size=0.6).survey_dir
 
 
 def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensurate, tmp_path):
@@ -31,12 +32,14 @@ def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensura
     made it ok when it fixed its alias. It is coarse now, with its windows' spread as its sd.
     Until session 20 the windows of the circular section gave along-track offsets their flat
     profiles did not have, and bent the curves of the pairs at its ends: 0.224 m inter-run at
-    most (0.11 of the input's), 0.097 m since they give across and up only."""
+    most (0.11 of the input's), 0.097 m since they give across and up only. At 0.6 size
+    (session 25): 0.015-0.023 m RMS, 0.030-0.062 m max per run pair, 11 ok pairs (worst 1.4 cm),
+    26 coarse."""
     metrics = _run(mixed_commensurate, tmp_path / "out")
     for key, before in metrics["truth"]["before"]["consistency"].items():
         after = metrics["truth"]["after"]["consistency"][key]
         assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"], key
     score = metrics["truth"]["tile_offsets"]
-    assert score["ok_pairs"] >= 15
+    assert score["ok_pairs"] >= 10
     assert max(score["max_abs_m"]) <= 0.05, score
     assert sum(r["status"] == "coarse" for r in metrics["adjustment"]["alongtrack"]) >= 5
