@@ -96,6 +96,19 @@ def alias_rivals(target: PlaneTarget, moving: np.ndarray, best: Checked, center:
     return check_peaks(target, moving, rivals, fitness_radius=radius), profile
 
 
+#: misfits (shares of points left out) are compared this much above themselves: two fits that
+#: leave no point out are indistinguishable (ratio 1), not infinitely far apart. On a smooth
+#: tube scanned on lines 2 cm apart every point lay within the fitness radius at every shift,
+#: and 0 / 0 read as "no rival": a pair 2.5 m off on a ring-joint alias was reported ``ok``
+MISFIT_FLOOR = 1e-4
+
+
+def misfit_ratio(best: float, rival: float) -> float:
+    """How close a rival's misfit comes to the best's: ``best / rival``, both above
+    :data:`MISFIT_FLOOR` (1: indistinguishable, near 0: the rival fits far worse)."""
+    return float((best + MISFIT_FLOOR) / (rival + MISFIT_FLOOR))
+
+
 def choose(checked: list[Checked], distinct: float) -> tuple[int, float]:
     """Index of the best-fitting peak, and how close the best *distinct* rival comes to it.
 
@@ -109,7 +122,7 @@ def choose(checked: list[Checked], distinct: float) -> tuple[int, float]:
     rival = 0.0
     for i, c in enumerate(checked):
         if i != best and np.abs(c.fit.d - checked[best].fit.d).max() > distinct:
-            rival = max(rival, float(misfit[best] / max(misfit[i], 1e-12)))
+            rival = max(rival, misfit_ratio(misfit[best], misfit[i]))
     return best, rival
 
 

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from railtraj.matching.consensus import misfit_ratio
+
 #: cross-section cell (m, across and up) within which intensities are compared
 CELL = 0.1
 #: points a cell needs for its median; fewer, its points count as unmarked
@@ -174,7 +176,7 @@ class IntensityMarks:
         if foot.all():
             return 0.0, 0.0, profile
         k = int(np.flatnonzero(~foot)[np.argmax(share[~foot])])
-        return float((1.0 - share[k0]) / max(1.0 - share[k], 1e-12)), float(ts[k]), profile
+        return misfit_ratio(1.0 - share[k0], 1.0 - share[k]), float(ts[k]), profile
 
 
 class LazyMarks:

@@ -25,6 +25,7 @@ from railtraj.matching.consensus import (
 )
 from railtraj.matching.piecewise import (
     alias_ratio,
+    edge_peak,
     edge_profile,
     piecewise_fit,
     reference_times,
@@ -157,6 +158,21 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         if moved[0] is not None:
             info["moved_to_alias"] = (moved[0].d_ref - fit.d_ref).tolist()
             fit, inside, rival, _ = moved
+    moved_to_edges = False
+    if not (fit.windows[:, 5] > 0).any():
+        # no window found an along-track offset at the votes' choice: where the edges' own
+        # profile shows an alias, its windows may (a fast train's votes in a ring-jointed tube
+        # fall between the joints, whose 2.5 cm steps only the edge profile sees there)
+        peak = edge_peak(edge_profile(target, tree, tile_b.xyz[inside], fit, votes.center, votes.window,
+                                      s.fitness_radius))
+        kept_profile = info["alias_profile"]
+        moved = (None,) if peak is None else fit_from(fit.d_ref + peak * fit.axis)
+        if moved[0] is not None and (moved[0].windows[:, 5] == 1).any():
+            info["moved_to_edges"] = (moved[0].d_ref - fit.d_ref).tolist()
+            fit, inside, rival, _ = moved
+            moved_to_edges = True
+        else:
+            info["alias_profile"] = kept_profile
     info["timings"]["windows"] = time.perf_counter() - t0
     info["time_a"], info["time_b"] = reference_times(fit, tile_a.xyz, tile_a.gps_time, tile_b.xyz[inside],
                                                      tile_b.gps_time[inside])
@@ -168,7 +184,8 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ia, ib = ia[keep], ib[keep]
     degenerate = not (sd[-1] <= s.max_sd and fit.n_used >= s.min_windows)
     info["degenerate_fit"] = degenerate  # also when ambiguous: should the chain fix it, it is coarse
-    ambiguous = rival >= s.ambiguity_ratio or (few_votes and not degenerate)
+    # a curve moved to its edges' peak sits on one alias of many: the chain along the track chooses
+    ambiguous = rival >= s.ambiguity_ratio or ((few_votes or moved_to_edges) and not degenerate)
     if (ambiguous or degenerate) and len(fit.windows) and (fit.windows[:, 5] == 1).any():
         # left to the chain along the track: it needs the aliases edges too thin for the
         # fitness profile repeat on (ring joints)

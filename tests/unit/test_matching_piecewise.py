@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from railtraj.matching.piecewise import (
+    EDGE_TANGENT_WEIGHT,
     Piecewise,
     alias_ratio,
     along_costs,
@@ -287,11 +288,12 @@ def test_marks_in_the_intensity_place_the_windows_of_a_plain_tube():
     assert np.sqrt(fit.cov[0, 0]) >= 0.01  # a mark's window is known to centimetres, not millimetres
 
 
-def _ring_jointed(x0: float, x1: float, seed: int, spacing: float = 1.25) -> np.ndarray:
-    """A plain tube scanned on lines 2 cm apart whose lining steps 2.5 cm inwards over an
-    8 cm ring joint every ``spacing`` metres (a segmental lining; floor left plain)."""
-    xyz = _scanned(x0, x1, seed, 0.007 * seed, features=False, spacing=0.02)
-    joint = (xyz[:, 0] % spacing < 0.08) & (xyz[:, 2] > 0.3)
+def _ring_jointed(x0: float, x1: float, seed: int, spacing: float = 1.25, lines: float = 0.02,
+                  width: float = 0.08) -> np.ndarray:
+    """A plain tube scanned on lines ``lines`` apart whose lining steps 2.5 cm inwards over a
+    ``width`` ring joint every ``spacing`` metres (a segmental lining; floor left plain)."""
+    xyz = _scanned(x0, x1, seed, 0.007 * seed, features=False, spacing=lines)
+    joint = (xyz[:, 0] % spacing < width) & (xyz[:, 2] > 0.3)
     inward = np.column_stack([np.zeros(len(xyz)), -xyz[:, 1], np.full(len(xyz), 2.0) - xyz[:, 2]])
     xyz[joint] += 0.025 * inward[joint] / np.linalg.norm(inward[joint], axis=1, keepdims=True)
     return xyz
@@ -321,3 +323,63 @@ def test_the_edge_profile_shows_the_ring_joints_the_fitness_profile_misses():
     assert len(shift) >= 3 and movable.all()
     np.testing.assert_allclose(shift, lattice, atol=0.05)  # every peak is a ring joint away
     assert np.isin([-1.25, 0.0, 1.25], np.round(lattice, 2)).all()  # the truth (-1.25) among them
+
+
+@pytest.mark.parametrize("lines", [0.05, 0.065])
+def test_a_fast_trains_windows_find_the_ring_joints_across_the_surface(lines):
+    """Scan lines 5-6.5 cm apart over 8 cm ring joints: the plain squared distance ripples as
+    the runs' lines pass each other and shows no valley (significance 2-3, its lowest sample
+    2 cm off); measured across run a's surface, every window finds the joints to centimetres."""
+    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=lines), _ring_jointed(0, 24, 10, lines=lines)
+    d0 = np.array([0.4, 0.02, -0.01])
+    fit = piecewise_fit(build_target(a_xyz), a_xyz, b_true - d0, d0 + 0.04 * AXIS, length=5.0, tau=lines)
+    assert (fit.windows[:, 5] == 1).all() and fit.n_used >= 4, fit.windows
+    np.testing.assert_allclose(fit.windows[:, 1], d0[0], atol=0.02)
+
+
+@pytest.mark.parametrize("tangent_weight, clean", [(EDGE_TANGENT_WEIGHT, True), (1.0, False)])
+def test_a_fast_trains_edge_profile_shows_the_joints_and_no_ripple(tangent_weight, clean, monkeypatch):
+    """Scan lines 6.5 cm apart (a fast train) over 8 cm ring joints: the plain squared distance
+    ripples as the runs' lines pass each other, nearly as deep as a joint's 2.5 cm step, and
+    some of that ripple stands out as peaks between the joints (candidates that are no alias).
+    Across run a's surface only, every significant peak is a joint."""
+    from railtraj.alongtrack import AlongTrackOptions, _profile_peaks
+
+    monkeypatch.setattr("railtraj.matching.piecewise.EDGE_TANGENT_WEIGHT", tangent_weight)
+    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=0.065), _ring_jointed(0, 24, 10, lines=0.065)
+    d0 = np.array([0.4, 0.02, -0.01])
+    b_xyz = b_true - d0
+    target, tree = build_target(a_xyz), reference_tree(a_xyz)
+    fit = piecewise_fit(target, a_xyz, b_xyz, d0, length=5.0, tree=tree)
+    edges = edge_profile(target, tree, b_xyz, fit, d0, 3.0, tau=0.065)
+    shift = _profile_peaks(edges, AlongTrackOptions()).shift
+    off_lattice = np.abs(shift - 1.25 * np.round(shift / 1.25)) > 0.05
+    assert len(shift) >= 3
+    assert (not off_lattice.any()) == clean, shift
+
+
+def test_a_curve_without_valleys_moves_to_its_edges_peak_and_is_left_to_the_chain():
+    """The votes of a fast train in a ring-jointed tube fall between the joints (0.6 m off):
+    no window finds a valley there. The matcher moves the curve to its edge profile's peak,
+    a joint away from the truth, where the windows find their valleys; one alias of many, so
+    the pair is ambiguous and the chain along the track chooses."""
+    from railtraj.data import Keypoints, PointTile
+    from railtraj.matching.resolve import VoteSettings, resolve
+    from railtraj.matching.voting import pair_translations
+
+    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=0.065), _ring_jointed(0, 24, 10, lines=0.065)
+    d0 = np.array([0.4, 0.02, -0.01])
+    b_xyz = b_true - d0
+    wrong = d0 + 0.6 * AXIS
+    kp_b = b_xyz[np.random.default_rng(3).choice(len(b_xyz), 40, replace=False)]
+    kp_a, kp_b = Keypoints(kp_b + wrong, np.zeros(40)), Keypoints(kp_b, np.zeros(40))
+    tile_a = PointTile(a_xyz, np.zeros(len(a_xyz)), run_id="a", name="t")
+    tile_b = PointTile(b_xyz, np.zeros(len(b_xyz)), run_id="b", name="t")
+    votes = pair_translations(kp_a.xyz, kp_b.xyz, wrong, 3.0)
+    off = resolve(tile_a, kp_a, tile_b, kp_b, votes, VoteSettings(fitness_radius=0.065),
+                  lambda *args: None, {"timings": {}})
+    assert "moved_to_edges" in off.info and off.status == "ambiguous", off.status
+    along = (off.d - d0) @ AXIS
+    assert abs(along - 1.25 * round(along / 1.25)) < 0.03, along  # on a joint
+    assert np.abs(off.d[1:] - d0[1:]).max() < 0.005
+    assert off.info["piecewise"]["windows_used"] >= 3
