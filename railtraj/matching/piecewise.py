@@ -325,8 +325,10 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
-    window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
-    keeps its across and up; its along-track value is point-to-plane's, which means nothing,
+    window whose profile has no valley (:func:`valley_significance`) is measured again across
+    run a's surface (:func:`along_costs` with normals: a fast train's ring joints), where a
+    valley must rise :data:`MIN_ACROSS_VALLEY` times its noise. One without either (``along``
+    0: no edges) keeps its across and up; its along-track value is point-to-plane's, which means nothing,
     unless ``marks`` (intensity, :mod:`railtraj.matching.intensity`) place it (``along`` 2),
     searched along the chord of ``vote_window`` (the votes' centre and radius) through the
     window's offset. A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
@@ -375,15 +377,13 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
-        if not valley_significance(ts, costs) >= MIN_VALLEY:  # measured across run a's surface?
-            across = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along, normals)
-            if valley_significance(ts, across) >= MIN_ACROSS_VALLEY:
-                costs = across
-        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only, unless marks
-            s_mark, t = marked(lo, hi, fit.d)
-            if np.isfinite(t):  # placed where its marks are
-                return [s_mark, *(fit.d + t * axis), 2.0]
-            return [float(s[inside].mean()), *fit.d, 0.0]
+        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no valley: across run a's surface?
+            costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along, normals)
+            if not valley_significance(ts, costs) >= MIN_ACROSS_VALLEY:  # no edges: across and up
+                s_mark, t = marked(lo, hi, fit.d)  # only, unless marks
+                if np.isfinite(t):  # placed where its marks are
+                    return [s_mark, *(fit.d + t * axis), 2.0]
+                return [float(s[inside].mean()), *fit.d, 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
         return [float(s[inside].mean()), *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 

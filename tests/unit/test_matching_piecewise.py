@@ -358,16 +358,15 @@ def test_a_fast_trains_edge_profile_shows_the_joints_and_no_ripple(tangent_weigh
     assert (not off_lattice.any()) == clean, shift
 
 
-def test_a_curve_without_valleys_moves_to_its_edges_peak_and_is_left_to_the_chain():
-    """The votes of a fast train in a ring-jointed tube fall between the joints (0.6 m off):
-    no window finds a valley there. The matcher moves the curve to its edge profile's peak,
-    a joint away from the truth, where the windows find their valleys; one alias of many, so
-    the pair is ambiguous and the chain along the track chooses."""
+def _resolved_between_joints(lines: float) -> tuple:
+    """The matcher's end on a ring-jointed tube scanned on lines ``lines`` apart whose 40
+    keypoint pairs all vote 0.6 m off the truth (between two joints): the pair's offset and
+    the truth."""
     from railtraj.data import Keypoints, PointTile
     from railtraj.matching.resolve import VoteSettings, resolve
     from railtraj.matching.voting import pair_translations
 
-    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=0.065), _ring_jointed(0, 24, 10, lines=0.065)
+    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=lines), _ring_jointed(0, 24, 10, lines=lines)
     d0 = np.array([0.4, 0.02, -0.01])
     b_xyz = b_true - d0
     wrong = d0 + 0.6 * AXIS
@@ -376,10 +375,29 @@ def test_a_curve_without_valleys_moves_to_its_edges_peak_and_is_left_to_the_chai
     tile_a = PointTile(a_xyz, np.zeros(len(a_xyz)), run_id="a", name="t")
     tile_b = PointTile(b_xyz, np.zeros(len(b_xyz)), run_id="b", name="t")
     votes = pair_translations(kp_a.xyz, kp_b.xyz, wrong, 3.0)
-    off = resolve(tile_a, kp_a, tile_b, kp_b, votes, VoteSettings(fitness_radius=0.065),
+    off = resolve(tile_a, kp_a, tile_b, kp_b, votes, VoteSettings(fitness_radius=max(0.05, lines)),
                   lambda *args: None, {"timings": {}})
+    return off, d0
+
+
+def test_a_curve_without_valleys_moves_to_its_edges_peak_and_is_left_to_the_chain():
+    """A fast train (scan lines 6.5 cm apart): the votes fall between the joints, where no
+    window finds a valley. The matcher moves the curve to its edge profile's peak, a joint
+    away from the truth, where the windows find their valleys; one alias of many, so the pair
+    is ambiguous and the chain along the track chooses."""
+    off, d0 = _resolved_between_joints(0.065)
     assert "moved_to_edges" in off.info and off.status == "ambiguous", off.status
     along = (off.d - d0) @ AXIS
     assert abs(along - 1.25 * round(along / 1.25)) < 0.03, along  # on a joint
     assert np.abs(off.d[1:] - d0[1:]).max() < 0.005
     assert off.info["piecewise"]["windows_used"] >= 3
+
+
+def test_a_pair_whose_every_shift_fits_every_point_is_never_ok():
+    """Scan lines 2 cm apart on a smooth tube: every point lies within the fitness radius at
+    every shift, so the curve and its aliases all misfit 0. That ratio is 1 (indistinguishable),
+    not 0 / 0 read as "no rival": the pair, on a joint 2.5 m from the truth, was reported ok."""
+    off, d0 = _resolved_between_joints(0.02)
+    along = (off.d - d0) @ AXIS
+    assert abs(along) > 1.0  # the dense check took a rival on a joint alias ...
+    assert off.status == "ambiguous" and off.info["rival_misfit_ratio"] >= 0.8  # ... and says so
