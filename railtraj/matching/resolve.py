@@ -24,12 +24,14 @@ from railtraj.matching.consensus import (
     make_ties,
 )
 from railtraj.matching.piecewise import (
+    Piecewise,
     alias_ratio,
     edge_peak,
     edge_profile,
     piecewise_fit,
     reference_times,
     reference_tree,
+    track_frame,
     window_ties,
 )
 from railtraj.matching.refine import directions, sample
@@ -39,6 +41,8 @@ from railtraj.matching.voting import Votes, find_peaks, slices
 
 #: keypoint pairs agreeing with the curve needed to use them as ties (else one tie per window)
 MIN_KEYPOINT_TIES = 3
+#: m; a curve moved to its edge profile's peak may change its across and up by this much at most
+MAX_EDGE_MOVE_ACROSS = 0.02
 
 Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], TileOffset]
 
@@ -159,20 +163,15 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
             info["moved_to_alias"] = (moved[0].d_ref - fit.d_ref).tolist()
             fit, inside, rival, _ = moved
     moved_to_edges = False
-    if not (fit.windows[:, 5] > 0).any():
-        # no window found an along-track offset at the votes' choice: where the edges' own
-        # profile shows an alias, its windows may (a fast train's votes in a ring-jointed tube
-        # fall between the joints, whose 2.5 cm steps only the edge profile sees there)
-        peak = edge_peak(edge_profile(target, tree, tile_b.xyz[inside], fit, votes.center, votes.window,
-                                      s.fitness_radius))
+    if not (fit.windows[:, 5] > 0).any():  # no window found an along-track offset
         kept_profile = info["alias_profile"]
-        moved = (None,) if peak is None else fit_from(fit.d_ref + peak * fit.axis)
-        if moved[0] is not None and (moved[0].windows[:, 5] == 1).any():
+        moved = _to_edges(fit, fit_from, target, tree, tile_b.xyz[inside], votes, s.fitness_radius)
+        if moved is None:
+            info["alias_profile"] = kept_profile
+        else:
             info["moved_to_edges"] = (moved[0].d_ref - fit.d_ref).tolist()
             fit, inside, rival, _ = moved
             moved_to_edges = True
-        else:
-            info["alias_profile"] = kept_profile
     info["timings"]["windows"] = time.perf_counter() - t0
     info["time_a"], info["time_b"] = reference_times(fit, tile_a.xyz, tile_a.gps_time, tile_b.xyz[inside],
                                                      tile_b.gps_time[inside])
@@ -204,6 +203,24 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         ties = Ties(tile_a.run_id, tile_b.run_id, t_a, t_b, xyz_a, xyz_b, np.full(len(t_a), 1.0 / max(len(t_a), 1)))
     return TileOffset(tile_a.run_id, tile_b.run_id, tile_a.name, tile_b.name, d=fit.d_ref, cov=fit.cov,
                       inliers=len(ia), status="ok", ties=ties, info=info)
+
+
+def _to_edges(fit: Piecewise, fit_from: Callable, target, tree: cKDTree, moving: np.ndarray, votes: Votes,
+              tau: float) -> tuple | None:
+    """``fit_from``'s refit from the highest significant peak of ``fit``'s edge profile, for a
+    curve none of whose windows found an along-track offset: a fast train's votes in a
+    ring-jointed tube fall between the joints, whose 2.5 cm steps only the edge profile sees
+    there. None unless the refit's windows find valleys, and its across and up stay within
+    :data:`MAX_EDGE_MOVE_ACROSS` of ``fit``'s: the move is along the track only (on 24 moves
+    in tubes they changed by at most 0.6 cm; two refits across two tracks in a ``mixed``
+    tunnel, 4-5 cm up, found other surfaces and were 12 cm off)."""
+    peak = edge_peak(edge_profile(target, tree, moving, fit, votes.center, votes.window, tau))
+    moved = None if peak is None else fit_from(fit.d_ref + peak * fit.axis)
+    if moved is None or moved[0] is None or not (moved[0].windows[:, 5] == 1).any():
+        return None
+    new = moved[0]
+    change = track_frame(new.axis) @ (new.d_ref - fit.at((new.origin + new.s_ref * new.axis)[None])[0])
+    return moved if np.abs(change[1:]).max() <= MAX_EDGE_MOVE_ACROSS else None
 
 
 def _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s: VoteSettings, info) -> TileOffset:
