@@ -61,10 +61,6 @@ UNKNOWN_VAR = 1e4
 #: along-track windows a curve needs before anything checks it: a line through two fits them
 #: exactly. With fewer, the windows that found an offset are halved (:func:`window_offsets`)
 CHECKED_WINDOWS = 3
-#: share of the squared distance along run a's surface that :func:`edge_costs` counts (0:
-#: across only, 1: the plain distance). On scan lines 6.5 cm apart a tenth already brought
-#: back the lines' ripple (peaks of 12-15 sd between a synthetic tube's joints; across only, 3)
-EDGE_TANGENT_WEIGHT = 0.0
 #: an edge profile's peak a curve without valleys is moved to must rise this many sd above the
 #: higher dip beside it (:func:`edge_peak`); tube 515's joints rose 8-38, its noise 3-4
 MIN_EDGE_PEAK = 5.0
@@ -620,11 +616,19 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
 
 
 def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Piecewise, center: np.ndarray,
-                 window: float, tau: float, step: float = 0.05, points: int = 8_000, groups: int = 8) -> dict:
+                 window: float, tau: float, step: float = 0.05, points: int = 8_000, groups: int = 8,
+                 across: bool = False) -> dict:
     """The along-track profile of the curve's edges: 1 minus the mean truncated cost (over
-    ``tau^2``, :func:`edge_costs`) of ``moving`` moved by its curve and shifted along the track
-    against run a's points, over the chord of the vote window, for the informative half of the
-    points. ``tree`` and ``target`` are both built on run a's points (the same array).
+    ``tau^2``, :func:`edge_costs`; ``across`` run a's surface only) of ``moving`` moved by its
+    curve and shifted along the track against run a's points, over the chord of the vote
+    window, for the informative half of the points. ``tree`` and ``target`` are both built on
+    run a's points (the same array).
+
+    The chain weighs its candidates by the plain distance's profile: across the surface, the
+    joint the curve was fitted on misfits so much less than the others (a joint that fits
+    leaves only the range noise) that the others fell beyond ``max_misfit_ratio``, the truth
+    among them (tube 303: 59 % of the length used along the track -> 50 %). Across the
+    surface it finds where to move a curve without valleys (:func:`edge_peak`).
 
     :func:`alias_ratio`'s fitness counts points within ``radius``; a ring joint's 2.5 cm step
     lies within it, so a ring-jointed tube's fitness profile is flat (0.98-0.999 over 6 m) and
@@ -640,7 +644,7 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
     lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
     ts = step * np.arange(np.floor(lo / step) - 1, np.ceil(hi / step) + 2)
     kept = moved[target.inside(moved + ts[0] * fit.axis, 0.3) & target.inside(moved + ts[-1] * fit.axis, 0.3)]
-    cost = _informative_half(edge_costs(target, tree, kept, fit.axis, ts, tau) / tau**2)
+    cost = _informative_half(edge_costs(target, tree, kept, fit.axis, ts, tau, across) / tau**2)
     profile = {"axis": fit.axis.tolist(), "start": float(ts[0]), "step": step, "points": cost.shape[1], "source": "edges"}
     if cost.shape[1] < 2 * groups:
         return {**profile, "fitness": [], "noise": []}
@@ -653,18 +657,18 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
 
 
 def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.ndarray, ts: np.ndarray,
-               tau: float) -> np.ndarray:
+               tau: float, across: bool = True) -> np.ndarray:
     """(len(ts), len(pts)) cost of ``pts`` shifted by each of ``ts`` along ``axis``: the squared
-    distance to the nearest of run a's points (``tree``), its part along run a's surface there
-    (the normal of ``target``'s block) counted :data:`EDGE_TANGENT_WEIGHT` times only (not at
-    all); ``tau^2`` beyond ``tau``.
+    distance to the nearest of run a's points (``tree``), with ``across`` only its part across
+    run a's surface there (the normal of ``target``'s block); ``tau^2`` beyond ``tau``.
 
     A point on a plain lining slides along it, and the plain squared distance then follows
     where run a's scan lines happen to lie, a ripple as deep as a ring joint's 2.5 cm step
     once the lines are 5-7 cm apart (a fast train): on held-out tube 515 (1.3x speed) the
-    joints rose 5-20 sd over it and noise peaks 4-6 (candidates that are no alias). Across
-    the surface only, the lining is flat at every shift and the joints stand out alone: 8-44
-    sd, noise at most 3. Blocks without a plane keep the plain distance.
+    joints rose 5-20 sd over it and noise peaks 4-6. Across the surface only, the lining is
+    flat at every shift and the joints stand out alone: 8-44 sd, noise at most 3 (a tenth of
+    the distance along the surface added back brought the ripple back on 6.5 cm lines: 12-15
+    sd between a synthetic tube's joints). Blocks without a plane keep the plain distance.
     """
     shifted = (pts[None, :, :] + ts[:, None, None] * axis).reshape(-1, 3)
     # (along_costs' cylinder search is built for the windows' +-10 cm; over metres a query per
@@ -673,11 +677,11 @@ def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.nda
     cost = np.full(len(shifted), tau * tau)
     found = np.isfinite(dist)
     cost[found] = dist[found] ** 2
-    planar = np.flatnonzero(found)
-    planar = planar[target.weight[target.grid.inverse[idx[planar]]] > 0]
-    normal = target.normal[target.grid.inverse[idx[planar]]]
-    across = np.einsum("ij,ij->i", normal, tree.data[idx[planar]] - shifted[planar])
-    cost[planar] = across**2 + EDGE_TANGENT_WEIGHT * np.maximum(cost[planar] - across**2, 0.0)
+    if across:
+        planar = np.flatnonzero(found)
+        planar = planar[target.weight[target.grid.inverse[idx[planar]]] > 0]
+        normal = target.normal[target.grid.inverse[idx[planar]]]
+        cost[planar] = np.einsum("ij,ij->i", normal, tree.data[idx[planar]] - shifted[planar]) ** 2
     return cost.reshape(len(ts), len(pts))
 
 

@@ -214,7 +214,7 @@ def _to_edges(fit: Piecewise, fit_from: Callable, target, tree: cKDTree, moving:
     :data:`MAX_EDGE_MOVE_ACROSS` of ``fit``'s: the move is along the track only (on 24 moves
     in tubes they changed by at most 0.6 cm; two refits across two tracks in a ``mixed``
     tunnel, 4-5 cm up, found other surfaces and were 12 cm off)."""
-    peak = edge_peak(edge_profile(target, tree, moving, fit, votes.center, votes.window, tau))
+    peak = edge_peak(edge_profile(target, tree, moving, fit, votes.center, votes.window, tau, across=True))
     moved = None if peak is None else fit_from(fit.d_ref + peak * fit.axis)
     if moved is None or moved[0] is None or not (moved[0].windows[:, 5] == 1).any():
         return None
