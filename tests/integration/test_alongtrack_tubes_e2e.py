@@ -34,7 +34,7 @@ def test_a_fast_train_in_a_ring_jointed_tube_is_placed_on_its_joints(tmp_path):
     apart). The votes fall between the joints and the plain distance ripples with the scan
     lines: the matcher moves such a curve to its edge profile's peak, measured across run a's
     surface, where the windows find the joints; the chain picks the joint its prediction
-    points to. 0.43 / 0.70 m inter-run before, 1.6 / 3.7 cm after, 8 pairs fixed; session 25's
+    points to. 0.43 / 0.70 m inter-run before, 1.6 / 3.7 cm after, 7 pairs fixed; session 25's
     code left 4.5 / 10.8 cm, 5 fixed (measured, 2 cores, 54-65 s). At 1.0x speed: 1.9 / 5.1 cm
     (session 25), 1.2 / 3.5 cm now; seed 24 at 1.35x: 2.4 / 7.2 cm with either."""
     scn = get_scenario("tube")
