@@ -338,15 +338,12 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     n_points = float(prof.get("points", 2000))
     measured = np.asarray(prof.get("noise", []), float)  # an edge profile's: its costs are no counts
 
-    def noise(prominence: np.ndarray, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-        if len(measured) == len(fitness):  # the peak's and its dip's errors: the lining between
-            # ring joints scatters more than a joint that fits (2-4x on a fast train's edges)
-            dip = np.where(fitness[left] >= fitness[right], left, right)
-            return np.hypot(measured[peaks], measured[dip])
+    def noise(prominence: np.ndarray) -> np.ndarray:
+        if len(measured) == len(fitness):  # the peak's and its dip's errors (about as large)
+            return np.sqrt(2.0) * measured[peaks]
         return _counting_noise(fitness, peaks, prominence, n_points)
 
-    significant = props["prominences"] >= options.min_significance * noise(
-        props["prominences"], props["left_bases"], props["right_bases"])
+    significant = props["prominences"] >= options.min_significance * noise(props["prominences"])
     # ... and another alias than the matcher's own fit is one to move to only if it also stands
     # out against the dips within min_period either side (aliases lie a period apart, so a
     # real one falls off within a period). Against the whole window, the top sample of a flat
@@ -356,8 +353,8 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     within = 2 * int(np.ceil(options.min_period / prof["step"])) + 1
     with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
         warnings.simplefilter("ignore", RuntimeWarning)
-        local, left, right = peak_prominences(fitness, peaks, wlen=within)
-    movable = local >= options.min_significance * noise(local, left, right)
+        local = peak_prominences(fitness, peaks, wlen=within)[0]
+    movable = local >= options.min_significance * noise(local)
     peaks, movable = peaks[significant], movable[significant]
     shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]  # sub-sample, from the matcher's fit
     period = _alias_period(shift, options.min_period)

@@ -52,10 +52,6 @@ MARKS_SEARCH = 1.5
 #: a window's along-track profile must rise from its valley by this many times its noise
 #: (:func:`valley_significance`); flatter, the window has no edges and gives no offset
 MIN_VALLEY = 3.0
-#: ... and measured across run a's surface (:func:`along_costs` with normals), which a window
-#: whose plain distance shows no valley is tried with: on plain synthetic tubes that
-#: significance reached 4.2 at a tile's end, on ring joints under 5-7 cm apart scan lines 7-22
-MIN_ACROSS_VALLEY = 6.0
 #: variance (m^2) of the along-track offset of a curve none of whose windows found one
 UNKNOWN_VAR = 1e4
 #: along-track windows a curve needs before anything checks it: a line through two fits them
@@ -196,13 +192,9 @@ def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarra
 
 
 def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
-                tau: float, tree_along: np.ndarray | None = None, normals: np.ndarray | None = None) -> np.ndarray:
+                tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
     """Truncated squared distance to the reference points of ``pts + d + t axis``, (len(ts), m)
-    for the m informative points. With ``normals`` (:func:`reference_normals`), the distance
-    across run a's surface instead, to the reference point within ``tau`` nearest that way
-    (the plain distance where a point's block has no plane): a fast train's scan lines lie
-    5-7 cm apart, and the plain distance then ripples with them as deep as a ring joint's
-    2.5 cm step (:func:`edge_costs`).
+    for the m informative points.
 
     Only the half of the points whose distance changes most over ``ts`` count: points on plain
     walls change little (they slide along themselves) and only add noise.
@@ -220,41 +212,20 @@ def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray,
     reach = tau + float(np.abs(ts).max())
     pairs = _pair_search_tree(moved, 4).sparse_distance_matrix(tree, reach, output_type="ndarray")
     tree_along = along_coordinates(tree, axis) if tree_along is None else tree_along
-    owner, ref = pairs["i"], pairs["j"]
-    along = tree_along[ref] - ((moved - tree.data[0]) @ axis)[owner]
+    owner = pairs["i"]
+    along = tree_along[pairs["j"]] - ((moved - tree.data[0]) @ axis)[owner]
     nn2 = pairs["v"] ** 2
     near = nn2 - along**2 <= tau * tau  # inside the cylinder: within tau of some shifted position
-    owner, ref, along, nn2 = owner[near], ref[near], along[near], nn2[near]
+    owner, along, nn2 = owner[near], along[near], nn2[near]
     # a stable sort of 16-bit owners is a radix sort (a window holds a few thousand points)
     order = np.argsort(owner.astype(np.int16) if len(pts) < 2**15 else owner, kind="stable")
-    owner, ref, along, nn2 = owner[order], ref[order], along[order], nn2[order]
+    owner, along, nn2 = owner[order], along[order], nn2[order]
     cost = np.full((len(ts), len(pts)), tau * tau)
-    if not len(owner):
-        return _informative_half(cost)
-    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-    if normals is None:
+    if len(owner):
+        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
         for k, t in enumerate(ts):  # a few dozen shifts, each vectorised over all neighbours
             cost[k, owner[starts]] = np.minimum(np.minimum.reduceat(nn2 - 2.0 * t * along + t * t, starts), tau * tau)
-        return _informative_half(cost)
-    normal = normals[ref]
-    planar = normal.any(axis=1)
-    across0 = np.einsum("ij,ij->i", normal, tree.data[ref] - moved[owner])  # at t = 0 ...
-    slope = normal @ axis  # ... and its change per metre of shift
-    for k, t in enumerate(ts):
-        dist2 = nn2 - 2.0 * t * along + t * t
-        pair_cost = np.where(dist2 <= tau * tau, np.where(planar, (across0 - t * slope) ** 2, dist2), tau * tau)
-        cost[k, owner[starts]] = np.minimum.reduceat(pair_cost, starts)
-    # only points run a covers at every shift: across its surface, one slid off a's end (or
-    # into a gap) rises alone, and at a tile's end those points made a plain tube's window a
-    # valley 8.6 times its noise
-    return _informative_half(cost[:, (cost < tau * tau).all(axis=0)])
-
-
-def reference_normals(target: PlaneTarget) -> np.ndarray:
-    """(n, 3) normal of each of run a's points (the array ``target`` was built on): its block's,
-    zeros where the block has no plane."""
-    block = target.grid.inverse
-    return target.normal[block] * (target.weight[block] > 0)[:, None]
+    return _informative_half(cost)
 
 
 def _informative_half(cost: np.ndarray) -> np.ndarray:
@@ -321,10 +292,8 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
-    window whose profile has no valley (:func:`valley_significance`) is measured again across
-    run a's surface (:func:`along_costs` with normals: a fast train's ring joints), where a
-    valley must rise :data:`MIN_ACROSS_VALLEY` times its noise. One without either (``along``
-    0: no edges) keeps its across and up; its along-track value is point-to-plane's, which means nothing,
+    window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
+    keeps its across and up; its along-track value is point-to-plane's, which means nothing,
     unless ``marks`` (intensity, :mod:`railtraj.matching.intensity`) place it (``along`` 2),
     searched along the chord of ``vote_window`` (the votes' centre and radius) through the
     window's offset. A short overlap gets shorter windows (down to ``min_length``) to reach ``min_windows``.
@@ -351,9 +320,6 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             edges = core
     ts = np.arange(-search, search + step / 2, step)
     tree_along = along_coordinates(tree, axis)
-    normals = reference_normals(target)
-    if len(normals) != tree.n:
-        raise ValueError(f"the plane target holds {len(normals)} points, the tree {tree.n}: build both on run a's points")
     frame = track_frame(axis)
 
     def marked(lo: float, hi: float, d: np.ndarray) -> tuple[float, float]:
@@ -373,13 +339,11 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
-        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no valley: across run a's surface?
-            costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along, normals)
-            if not valley_significance(ts, costs) >= MIN_ACROSS_VALLEY:  # no edges: across and up
-                s_mark, t = marked(lo, hi, fit.d)  # only, unless marks
-                if np.isfinite(t):  # placed where its marks are
-                    return [s_mark, *(fit.d + t * axis), 2.0]
-                return [float(s[inside].mean()), *fit.d, 0.0]
+        if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only, unless marks
+            s_mark, t = marked(lo, hi, fit.d)
+            if np.isfinite(t):  # placed where its marks are
+                return [s_mark, *(fit.d + t * axis), 2.0]
+            return [float(s[inside].mean()), *fit.d, 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
         return [float(s[inside].mean()), *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 
@@ -634,8 +598,8 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
     lies within it, so a ring-jointed tube's fitness profile is flat (0.98-0.999 over 6 m) and
     shows none of the aliases its windows' valleys sit on. This profile shows them, one a ring
     spacing from the next. ``noise`` is each sample's standard error, from ``groups``
-    interleaved subsets of the points (the costs are no counts), pooled with its neighbours'
-    (:func:`edge_costs` says why the cost is measured across the surface): with 2 000 points the
+    interleaved subsets of the points (the costs are no counts), ``across`` pooled with its
+    neighbours' (:func:`edge_costs` says what ``across`` is for): with 2 000 points the
     joints' valleys rose 1-2 times the noise's highest peaks, with 8 000 (0.4-1.1 s a pair)
     5-30 sd against at most 5.
     """
@@ -649,11 +613,11 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
     if cost.shape[1] < 2 * groups:
         return {**profile, "fitness": [], "noise": []}
     variance = _subset_means(cost, groups).var(axis=1, ddof=1) / groups
-    # pooled over 5 neighbouring shifts: one sample's 7 degrees of freedom let a tenth of its
-    # noise estimates fall below half the truth, and a slow undulation of the lining between
-    # joints then rose 3.4 sd (2.3 pooled; the joints 10-13)
-    return {**profile, "fitness": (1.0 - cost.mean(axis=1)).tolist(),
-            "noise": np.sqrt(uniform_filter1d(variance, 5, mode="nearest")).tolist()}
+    if across:  # pooled over 5 neighbouring shifts: one sample's 7 degrees of freedom let a
+        # tenth of its noise estimates fall below half the truth, and a slow undulation of the
+        # lining between joints then rose 3.4 sd (2.3 pooled; the joints 10-13)
+        variance = uniform_filter1d(variance, 5, mode="nearest")
+    return {**profile, "fitness": (1.0 - cost.mean(axis=1)).tolist(), "noise": np.sqrt(variance).tolist()}
 
 
 def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.ndarray, ts: np.ndarray,
@@ -686,8 +650,9 @@ def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.nda
 
 
 def edge_peak(profile: dict, min_sd: float = MIN_EDGE_PEAK) -> float | None:
-    """Shift (m) of the highest peak of an :func:`edge_profile` that rises ``min_sd`` standard
-    errors above the higher dip beside it; None where none does."""
+    """Shift (m) of the highest peak of an :func:`edge_profile` whose prominence (its rise above
+    the higher dip beside it) is ``min_sd`` times its sample's standard error, times sqrt 2 (the
+    dip's as large); None where none is."""
     from scipy.signal import find_peaks  # ~1 s to import: not at `railtraj --help`
 
     fitness, noise = np.asarray(profile["fitness"], float), np.asarray(profile["noise"], float)
