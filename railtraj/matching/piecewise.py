@@ -642,10 +642,10 @@ def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.nda
     found = np.isfinite(dist)
     cost[found] = dist[found] ** 2
     if across:
-        planar = np.flatnonzero(found)
-        planar = planar[target.weight[target.grid.inverse[idx[planar]]] > 0]
-        normal = target.normal[target.grid.inverse[idx[planar]]]
-        cost[planar] = np.einsum("ij,ij->i", normal, tree.data[idx[planar]] - shifted[planar]) ** 2
+        found = np.flatnonzero(found)
+        block = target.grid.inverse[idx[found]]
+        planar, block = found[target.weight[block] > 0], block[target.weight[block] > 0]
+        cost[planar] = np.einsum("ij,ij->i", target.normal[block], tree.data[idx[planar]] - shifted[planar]) ** 2
     return cost.reshape(len(ts), len(pts))
 
 

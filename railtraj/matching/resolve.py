@@ -147,30 +147,27 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
                             chosen.fit.information, tree, intensity, min_windows=s.min_windows,
                             tau=s.fitness_radius, vote_window=(votes.center, votes.window))
         if fit is None:
-            return None, inside, 0.0, 0.0
-        rival, shift, info["alias_profile"] = alias_ratio(target, tile_b.xyz[inside], fit, votes.center,
-                                                          votes.window, s.fitness_radius, 2 * s.inlier_radius,
-                                                          2 * s.profile_points)
-        return fit, inside, rival, shift
+            return None, inside, 0.0, 0.0, {}
+        rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
+                                            s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
+        return fit, inside, rival, shift, profile
 
-    fit, inside, rival, shift = fit_from(chosen.fit.d)
+    fit, inside, rival, shift, profile = fit_from(chosen.fit.d)
     if fit is None:
         return failed(tile_a, tile_b, "degenerate", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
+    info["alias_profile"] = profile
     if rival * s.ambiguity_ratio >= 1.0:  # an alias fits clearly better: the votes chose wrong
         moved = fit_from(fit.d_ref + shift * fit.axis)
         if moved[0] is not None:
             info["moved_to_alias"] = (moved[0].d_ref - fit.d_ref).tolist()
-            fit, inside, rival, _ = moved
+            fit, inside, rival, _, info["alias_profile"] = moved
     moved_to_edges = False
     if not (fit.windows[:, 5] > 0).any():  # no window found an along-track offset
-        kept_profile = info["alias_profile"]
         moved = _to_edges(fit, fit_from, target, tree, tile_b.xyz[inside], votes, s.fitness_radius)
-        if moved is None:
-            info["alias_profile"] = kept_profile
-        else:
+        if moved is not None:
             info["moved_to_edges"] = (moved[0].d_ref - fit.d_ref).tolist()
-            fit, inside, rival, _ = moved
+            fit, inside, rival, _, info["alias_profile"] = moved
             moved_to_edges = True
     info["timings"]["windows"] = time.perf_counter() - t0
     info["time_a"], info["time_b"] = reference_times(fit, tile_a.xyz, tile_a.gps_time, tile_b.xyz[inside],
