@@ -49,9 +49,10 @@ WINDOW_SD_FLOOR = np.array([0.010, 0.003, 0.003])
 MARKS_SD_FLOOR = 0.02
 #: how far (m) marks are searched either side of a window's offset where no vote window says
 MARKS_SEARCH = 1.5
-#: a window's along-track profile must rise from its valley by this many times its noise
-#: (:func:`valley_significance`); flatter, the window has no edges and gives no offset
-MIN_VALLEY = 3.0
+#: a window's along-track profile (across run a's surface) must rise from its valley by this
+#: many times its noise (:func:`valley_significance`); flatter, the window has no edges and
+#: gives no offset
+MIN_VALLEY = 6.0
 #: variance (m^2) of the along-track offset of a curve none of whose windows found one
 UNKNOWN_VAR = 1e4
 #: along-track windows a curve needs before anything checks it: a line through two fits them
@@ -185,16 +186,24 @@ def along_coordinates(tree: cKDTree, axis: np.ndarray) -> np.ndarray:
 
 
 def along_profile(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
-                  tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
+                  tau: float, tree_along: np.ndarray | None = None, normals: np.ndarray | None = None) -> np.ndarray:
     """Mean truncated squared distance to the reference points of ``pts + d + t axis`` per t:
     the mean over its informative points of :func:`along_costs`."""
-    return along_costs(tree, pts, d, axis, ts, tau, tree_along).mean(axis=1)
+    return along_costs(tree, pts, d, axis, ts, tau, tree_along, normals).mean(axis=1)
+
+
+def surface_normals(target: PlaneTarget) -> np.ndarray:
+    """(n, 3) normal of the plane block of each of the reference's raw points (``target`` built
+    on them, in their order); zero where the block is not planar."""
+    block = target.grid.inverse
+    return np.where((target.weight[block] > 0)[:, None], target.normal[block], 0.0)
 
 
 def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray, ts: np.ndarray,
-                tau: float, tree_along: np.ndarray | None = None) -> np.ndarray:
+                tau: float, tree_along: np.ndarray | None = None, normals: np.ndarray | None = None) -> np.ndarray:
     """Truncated squared distance to the reference points of ``pts + d + t axis``, (len(ts), m)
-    for the m informative points.
+    for the m informative points; with ``normals`` (:func:`surface_normals`) only its part
+    across run a's surface, the nearest point's normal (:func:`edge_costs`, the same costs).
 
     Only the half of the points whose distance changes most over ``ts`` count: points on plain
     walls change little (they slide along themselves) and only add noise.
@@ -212,19 +221,33 @@ def along_costs(tree: cKDTree, pts: np.ndarray, d: np.ndarray, axis: np.ndarray,
     reach = tau + float(np.abs(ts).max())
     pairs = _pair_search_tree(moved, 4).sparse_distance_matrix(tree, reach, output_type="ndarray")
     tree_along = along_coordinates(tree, axis) if tree_along is None else tree_along
-    owner = pairs["i"]
-    along = tree_along[pairs["j"]] - ((moved - tree.data[0]) @ axis)[owner]
+    owner, ref = pairs["i"], pairs["j"]
+    along = tree_along[ref] - ((moved - tree.data[0]) @ axis)[owner]
     nn2 = pairs["v"] ** 2
     near = nn2 - along**2 <= tau * tau  # inside the cylinder: within tau of some shifted position
-    owner, along, nn2 = owner[near], along[near], nn2[near]
+    owner, ref, along, nn2 = owner[near], ref[near], along[near], nn2[near]
     # a stable sort of 16-bit owners is a radix sort (a window holds a few thousand points)
     order = np.argsort(owner.astype(np.int16) if len(pts) < 2**15 else owner, kind="stable")
-    owner, along, nn2 = owner[order], along[order], nn2[order]
+    owner, ref, along, nn2 = owner[order], ref[order], along[order], nn2[order]
     cost = np.full((len(ts), len(pts)), tau * tau)
-    if len(owner):
-        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    if not len(owner):
+        return _informative_half(cost)
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    if normals is None:
         for k, t in enumerate(ts):  # a few dozen shifts, each vectorised over all neighbours
             cost[k, owner[starts]] = np.minimum(np.minimum.reduceat(nn2 - 2.0 * t * along + t * t, starts), tau * tau)
+        return _informative_half(cost)
+    # across the surface: each neighbour's distance along its normal, linear in the shift, kept
+    # for the nearest neighbour (the smallest of it among the neighbours as near as the nearest)
+    normal = normals[ref]
+    across = np.einsum("ij,ij->i", normal, tree.data[ref] - moved[owner])
+    slope, planar = normal @ axis, normal.any(axis=1)
+    counts = np.diff(np.r_[starts, len(owner)])
+    for k, t in enumerate(ts):
+        dist2 = nn2 - 2.0 * t * along + t * t
+        nearest = np.minimum.reduceat(dist2, starts)
+        value = np.where(dist2 <= np.repeat(nearest, counts), np.where(planar, (across - t * slope) ** 2, dist2), np.inf)
+        cost[k, owner[starts]] = np.where(nearest <= tau * tau, np.minimum.reduceat(value, starts), tau * tau)
     return _informative_half(cost)
 
 
@@ -319,7 +342,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         if _filled(s, core, min_points) > _filled(s, edges, min_points):
             edges = core
     ts = np.arange(-search, search + step / 2, step)
-    tree_along = along_coordinates(tree, axis)
+    tree_along, normals = along_coordinates(tree, axis), surface_normals(target)
     frame = track_frame(axis)
 
     def marked(lo: float, hi: float, d: np.ndarray) -> tuple[float, float]:
@@ -338,7 +361,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
-        costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along)
+        costs = along_costs(tree, pts, fit.d, axis, ts, tau, tree_along, normals)
         if not valley_significance(ts, costs) >= MIN_VALLEY:  # no edges: across and up only, unless marks
             s_mark, t = marked(lo, hi, fit.d)
             if np.isfinite(t):  # placed where its marks are
@@ -521,15 +544,21 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
         return None
     along = windows[:, 4] > 0
     s_ref = float(np.median(s))
-    # its along-track offset interpolated there, not extrapolated; with one or two windows only
-    # where marks placed them: a mark is where it is to centimetres (a window's edges, at the
-    # end of a featureless section, were not: :data:`CHECKED_WINDOWS`)
-    if along.sum() >= CHECKED_WINDOWS or (along.any() and (windows[along, 4] == 2).all()):
-        s_ref = float(np.clip(s_ref, windows[along, 0].min(), windows[along, 0].max()))
     floor = WINDOW_SD_FLOOR.copy()
     if (windows[:, 4] == 2).any():  # a window placed by marks: along only to centimetres
         floor[0] = MARKS_SD_FLOOR
     coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
+    # its along-track offset interpolated between the windows the curve rests on, not
+    # extrapolated (a window found and then dropped at a tile's end is not one); with one or two
+    # windows only where marks placed them: a mark is where it is to centimetres (a window's
+    # edges, at the end of a featureless section, were not: :data:`CHECKED_WINDOWS`). Which
+    # windows the curve keeps does not depend on ``s_ref``: it is fitted once more only when
+    # ``s_ref`` moves
+    if used.sum() >= CHECKED_WINDOWS or (used.any() and (windows[used, 4] == 2).all()):
+        inside = float(np.clip(s_ref, windows[used, 0].min(), windows[used, 0].max()))
+        if inside != s_ref:
+            s_ref = inside
+            coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
     table = np.column_stack([windows[:, :4], used, windows[:, 4]]).astype(float)
     centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
