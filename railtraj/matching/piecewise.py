@@ -12,9 +12,10 @@ on. So the overlap is cut into windows of ``length`` metres along the track; eac
   no along-track information left once the normal noise is taken out (its weakest eigenvalue
   was below zero on every simulated pair). Sliding the window's points along the track and
   measuring their distance to run a's raw points does see the edges: the along-track shift
-  is the minimum of that profile (truncated squared distance, the informative half of the
-  points, parabola through the three lowest samples). A window without edges has no
-  valley (:func:`valley_significance`): it gives across and up, but no along-track offset.
+  is the minimum of that profile (truncated squared distance across run a's surface, the
+  informative half of the points, parabola through the three lowest samples). A window
+  without edges has no valley (:func:`valley_significance`): it gives across and up, but no
+  along-track offset.
 
 A curve ``d(s) = c0 + c1 u + c2 u^2`` (``u = s - s_ref``; a parabola from 4 windows, a line
 from 2) through the window estimates is the result, ``c0`` the offset at the reference point
@@ -51,7 +52,8 @@ MARKS_SD_FLOOR = 0.02
 MARKS_SEARCH = 1.5
 #: a window's along-track profile (across run a's surface) must rise from its valley by this
 #: many times its noise (:func:`valley_significance`); flatter, the window has no edges and
-#: gives no offset
+#: gives no offset. On 1 330 windows of 11 simulated surveys started 0-3 cm off the truth, 6
+#: kept 1 149, 83 of them more than 3 cm off; the plain distance's 3 kept 1 219, 154 off
 MIN_VALLEY = 6.0
 #: variance (m^2) of the along-track offset of a curve none of whose windows found one
 UNKNOWN_VAR = 1e4
@@ -282,8 +284,10 @@ def valley_significance(ts: np.ndarray, costs: np.ndarray, groups: int = 8) -> f
     A window with edges (ribs, sleepers, brackets) scores tens. A window with none (a
     slab-track circular section, a platform wall) has no valley: its lowest sample is anywhere
     in the range (mixed 185: two such windows put an ``ok`` pair 6.7 cm off). On 462 windows of
-    simulated mixed, commensurate and tube surveys, a score of 3 left out 62 of the 69 windows
-    more than 3 cm off the truth, and 8 right to 2 cm.
+    simulated mixed, commensurate and tube surveys, a score of 3 on the plain distance left
+    out 62 of the 69 windows more than 3 cm off the truth, and 8 right to 2 cm. The windows
+    now measure across run a's surface (:func:`along_costs`), whose lining is flat at every
+    shift, and whose threshold was set on their own scores (:data:`MIN_VALLEY`).
     """
     G = np.vander(ts - ts.mean(), 3, increasing=True)
     half = 0.5 * np.ptp(ts)
@@ -314,7 +318,13 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0,
                    marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
-    ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out. A
+    ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out.
+    Each window's profile is its points' distance across run a's surface (:func:`along_costs`
+    with :func:`surface_normals`): the plain distance of a point on a plain lining follows where
+    run a's scan lines lie, and on fast trains (lines 6-8 cm apart) its valley was that ripple's,
+    3-4 cm off the joints (on 1 330 windows of 11 surveys, 443 more than 1.5 cm off the truth
+    against 308; on held-out fast tube 515, 66 against 18). Points whose shifts cross run a's
+    tile edge are left out (:func:`stays_on_tile`). A
     window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
     keeps its across and up; its along-track value is point-to-plane's, which means nothing,
     unless ``marks`` (intensity, :mod:`railtraj.matching.intensity`) place it (``along`` 2),

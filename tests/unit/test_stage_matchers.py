@@ -57,8 +57,8 @@ def _check_ties(off: TileOffset, a: PointTile, b: PointTile):
     windows = off.info["piecewise"]["windows_used"]
     assert len(ties) == (off.inliers if off.inliers >= MIN_KEYPOINT_TIES else windows) >= 4
     # a pure translation: the line of offsets along the track is flat, so every tie carries
-    # (nearly) the tile pair's offset
-    np.testing.assert_allclose(ties.xyz_a - ties.xyz_b, np.broadcast_to(off.d, ties.xyz_a.shape), atol=3e-3)
+    # the tile pair's offset, to the windows' scatter (its curve's slope over 12 m: 1.2-3.8 mm)
+    np.testing.assert_allclose(ties.xyz_a - ties.xyz_b, np.broadcast_to(off.d, ties.xyz_a.shape), atol=5e-3)
     assert ties.run_a == a.run_id and ties.run_b == b.run_id
     np.testing.assert_allclose(ties.weight.sum(), 1.0)
     # each tie's times are those of points measured where the feature is, in its own run
