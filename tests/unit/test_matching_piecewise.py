@@ -113,29 +113,12 @@ def test_window_ties_carry_the_true_offset_where_and_when_they_are(stretched):
     np.testing.assert_allclose(time_a, time_b, atol=0.1)
 
 
+@pytest.mark.parametrize("across", [False, True])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_along_profile_equals_a_nearest_neighbour_query_per_shift(seed):
-    """The capsule search finds every reference point that can be nearest within tau."""
-    rng = np.random.default_rng(seed)
-    ref = tunnel_tile(seed=seed).xyz
-    pts = ref[rng.choice(len(ref), 3000, replace=False)] + rng.normal(0, 0.01, (3000, 3))
-    axis = np.array([np.cos(0.3), np.sin(0.3), 0.0])
-    d, tau = np.array([0.02, -0.01, 0.005]), 0.05
-    ts = np.arange(-0.1, 0.1 + 0.0025, 0.005)
-    tree = reference_tree(ref)
-    got = along_profile(tree, pts, d, axis, ts, tau)
-    dist = np.stack([tree.query(pts + d + t * axis, distance_upper_bound=tau)[0] for t in ts])
-    cost = np.minimum(dist, tau) ** 2
-    spread = cost.std(axis=0)
-    want = cost[:, spread >= np.median(spread)].mean(axis=1)
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
-    assert np.ptp(want) > 1e-4  # the profile has a shape to get wrong
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_along_costs_across_the_surface_equal_a_query_per_shift(seed):
-    """The windows' costs across run a's surface, from one pair search, are :func:`edge_costs`'
-    (a nearest-neighbour query per shift, the distance along the nearest point's normal)."""
+def test_along_costs_equal_a_nearest_neighbour_query_per_shift(seed, across):
+    """The capsule search finds every reference point that can be nearest within tau; across
+    run a's surface, the costs are :func:`edge_costs`' (the distance along the nearest point's
+    normal, a query per shift)."""
     rng = np.random.default_rng(seed)
     ref = tunnel_tile(seed=seed).xyz
     pts = ref[rng.choice(len(ref), 3000, replace=False)] + rng.normal(0, 0.01, (3000, 3))
@@ -143,11 +126,12 @@ def test_along_costs_across_the_surface_equal_a_query_per_shift(seed):
     d, tau = np.array([0.02, -0.01, 0.005]), 0.05
     ts = np.arange(-0.1, 0.1 + 0.0025, 0.005)
     target, tree = build_target(ref), reference_tree(ref)
-    got = along_costs(tree, pts, d, axis, ts, tau, normals=surface_normals(target))
-    cost = edge_costs(target, tree, pts + d, axis, ts, tau)
-    want = cost[:, cost.std(axis=0) >= np.median(cost.std(axis=0))]
+    got = along_profile(tree, pts, d, axis, ts, tau, normals=surface_normals(target) if across else None)
+    cost = edge_costs(target, tree, pts + d, axis, ts, tau, across=across)
+    spread = cost.std(axis=0)
+    want = cost[:, spread >= np.median(spread)].mean(axis=1)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
-    assert np.ptp(want.mean(axis=1)) > 1e-5  # the profile has a shape to get wrong
+    assert np.ptp(want) > 1e-5  # the profile has a shape to get wrong
 
 
 def test_reference_position_lies_between_the_windows_the_curve_uses():
