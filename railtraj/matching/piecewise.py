@@ -52,8 +52,8 @@ MARKS_SD_FLOOR = 0.02
 MARKS_SEARCH = 1.5
 #: a window's along-track profile (across run a's surface) must rise from its valley by this
 #: many times its noise (:func:`valley_significance`); flatter, the window has no edges and
-#: gives no offset. On 1 330 windows of 11 simulated surveys started 0-3 cm off the truth, 6
-#: kept 1 149, 83 of them more than 3 cm off; the plain distance's 3 kept 1 219, 154 off
+#: gives no offset. On 1 704 windows of 12 simulated surveys started 0-3 cm off the truth, 6
+#: kept 1 408, 63 of them more than 3 cm off; the plain distance's 3 kept 1 471, 127 off
 MIN_VALLEY = 6.0
 #: variance (m^2) of the along-track offset of a curve none of whose windows found one
 UNKNOWN_VAR = 1e4
@@ -322,8 +322,8 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     Each window's profile is its points' distance across run a's surface (:func:`along_costs`
     with :func:`surface_normals`): the plain distance of a point on a plain lining follows where
     run a's scan lines lie, and on fast trains (lines 6-8 cm apart) its valley was that ripple's,
-    3-4 cm off the joints (on 1 330 windows of 11 surveys, 443 more than 1.5 cm off the truth
-    against 308; on held-out fast tube 515, 66 against 18). Points whose shifts cross run a's
+    3-4 cm off the joints (on 1 704 windows of 12 surveys, 447 more than 1.5 cm off the truth
+    against 259; on held-out fast tube 515, 66 against 18). Points whose shifts cross run a's
     tile edge are left out (:func:`stays_on_tile`). A
     window whose profile has no valley (``along`` 0: no edges, :func:`valley_significance`)
     keeps its across and up; its along-track value is point-to-plane's, which means nothing,
@@ -584,9 +584,10 @@ def reference_position(s_median: float, windows: np.ndarray, used: np.ndarray) -
     moved between the windows the curve rests on (``used``, rows of :func:`window_offsets`) so
     its along-track offset is interpolated, not extrapolated. Between the windows *used*: one
     found and then dropped at a tile's end moved a ribbed pair's reference 3 m beyond its
-    curve (a 50 m-tile survey, session 26's windows across the surface: 0.013 -> 0.193 m RMS). With one or two windows, only where marks
-    placed them: a mark is where it is to centimetres (a window's edges, at the end of a
-    featureless section, were not: :data:`CHECKED_WINDOWS`)."""
+    curve (a 50 m-tile survey, session 26's windows across the surface: 0.013 -> 0.193 m
+    RMS). With one or two windows, only where marks placed them: a mark is where it is to
+    centimetres (a window's edges, at the end of a featureless section, were not:
+    :data:`CHECKED_WINDOWS`)."""
     if used.sum() >= CHECKED_WINDOWS or (used.any() and (windows[used, 4] == 2).all()):
         return float(np.clip(s_median, windows[used, 0].min(), windows[used, 0].max()))
     return s_median
