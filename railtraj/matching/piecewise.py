@@ -699,9 +699,9 @@ def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.nda
     cost[found] = dist[found] ** 2
     if across:
         found = np.flatnonzero(found)
-        block = target.grid.inverse[idx[found]]
-        planar, block = found[target.weight[block] > 0], block[target.weight[block] > 0]
-        cost[planar] = np.einsum("ij,ij->i", target.normal[block], tree.data[idx[planar]] - shifted[planar]) ** 2
+        normal = surface_normals(target)[idx[found]]
+        planar, normal = found[normal.any(axis=1)], normal[normal.any(axis=1)]
+        cost[planar] = np.einsum("ij,ij->i", normal, tree.data[idx[planar]] - shifted[planar]) ** 2
     return cost.reshape(len(ts), len(pts))
 
 
