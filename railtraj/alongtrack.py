@@ -133,6 +133,8 @@ class Pair:
     period: float | None = None
     # (m/m)^2: variance of ``rate`` (:func:`_rate_variance`; None: ``rate_sd`` squared)
     rate_var: float | None = None
+    # (k,) m: how wide each candidate's peak is at its top (Peaks.width; None: one step)
+    width: np.ndarray | None = None
 
 
 class Peaks(NamedTuple):
@@ -142,6 +144,7 @@ class Peaks(NamedTuple):
     movable: np.ndarray  # (k,) whether the chain may move the pair onto each
     misfit: np.ndarray  # (k,) 1 - fitness at each
     period: float  # m: the profile's own alias spacing, or ``min_period`` where it shows none
+    width: np.ndarray  # (k,) m: how wide each peak's top is (:func:`_peak_top_width`), a step at least
 
 
 def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Trajectory],
@@ -175,7 +178,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         verdicts, mu, var = _resolve_chain(chain, options, walks)
         for pair, (shift, margin, verdict), m, v in zip(chain, verdicts, mu, var, strict=True):
             o, resolved = offsets[pair.index], verdict == "resolved"
-            extra = _placement_variance(o, shift, pair.sd, options)
+            extra = _placement_variance(o, shift, pair, options)
             coarse = resolved and (pair.sd**2 + extra > options.max_ok_sd**2 or _degenerate_fit(o))
             out[pair.index] = _apply(o, shift, resolved, trajectories, coarse=coarse, alias_var=extra)
             if not resolved:  # observed at its likeliest candidate, or at the prediction if none is near
@@ -299,7 +302,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         found = edges
     if found is None:
         return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
-    shift, movable, m, period = found
+    shift, movable, m, period, width = found
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
     axis = np.asarray(pw["axis"], float)
@@ -316,7 +319,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
-                rate_var=_rate_variance(pw, options))
+                rate_var=_rate_variance(pw, options), width=width)
 
 
 def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
@@ -370,7 +373,26 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
     shift, first = np.unique(shift, return_index=True)
     peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
-    return Peaks(shift, movable, misfit[peaks], period)
+    top_sd = measured[peaks] if len(measured) == len(fitness) else np.sqrt(misfit[peaks] / n_points)
+    return Peaks(shift, movable, misfit[peaks], period, _peak_top_width(fitness, peaks, top_sd) * prof["step"])
+
+
+def _peak_top_width(fitness: np.ndarray, peaks: np.ndarray, top_sd: np.ndarray) -> np.ndarray:
+    """How many samples wide each peak's top is: the run of samples around it within ``top_sd``
+    (its sample's sd) of its value. A ring-jointed tube's fitness profile is flat: 1.0 from
+    2.65 to 2.85 m on a held-out tube, where the chain moved a pair 2.70 m, 9 cm short of the
+    joint its edge profile showed at 2.75-2.80 m."""
+    out = np.ones(len(peaks))
+    for k, (p, sd) in enumerate(zip(peaks, top_sd, strict=True)):  # a handful of candidates
+        level = fitness[p] - sd
+        lo = p
+        while lo > 0 and fitness[lo - 1] >= level:
+            lo -= 1
+        hi = p
+        while hi < len(fitness) - 1 and fitness[hi + 1] >= level:
+            hi += 1
+        out[k] = hi - lo + 1
+    return out
 
 
 def _alias_period(shift: np.ndarray, min_period: float) -> float:
@@ -708,14 +730,16 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
     return xs[:, 0], ps[:, 0, 0]
 
 
-def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTrackOptions) -> float:
+def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongTrackOptions) -> float:
     """Variance (m^2) to add along the track to a fixed pair's own fit, for what places it less
     well than that fit claims.
 
     * **Another alias.** The matcher's windows place its own choice to millimetres; another alias
       is placed by the fitness profile, sampled every ``step`` (5 cm, more on sparse scans) and
-      often flat-topped there, so its peak is known to within a step: ``step^2 / 12``. On a
-      15 cm-gap scan a pair moved 3.06 m sat 6.6 cm off while its fit claimed 5 mm.
+      often flat-topped there, so its peak is known to within its top's width (a step at least,
+      :func:`_peak_top_width`): ``width^2 / 12``. On a 15 cm-gap scan a pair moved 3.06 m sat
+      6.6 cm off while its fit claimed 5 mm; on a ring-jointed tube one moved onto a top 25 cm
+      wide sat 9 cm off claiming 2.6 cm.
     * **The profile gap.** Each run sees an edge only where a profile steps onto it, so it places
       the edge somewhere within one gap (speed over profile rate). Where ribs and sleepers repeat
       in step with the profiles (1.5 m is 30 gaps of 5 cm), every edge of a tile is sampled at
@@ -735,7 +759,10 @@ def _placement_variance(o: TileOffset, shift: float, sd: float, options: AlongTr
       chain itself still fixes and predicts from the curve's own sd: using the spread there
       changed which pairs it fixed and doubled ``mixed`` seed 2's inter-run error.
     """
-    extra = float(o.info.get("alias_profile", {}).get("step", 0.05)) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
+    sd, step = pair.sd, float(o.info.get("alias_profile", {}).get("step", 0.05))
+    chosen = pair.shift == shift
+    width = float(pair.width[chosen][0]) if pair.width is not None and chosen.any() else step
+    extra = max(width, step) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
     extra += (options.sampling_sd * _profile_gap(o)) ** 2
     if _degenerate_fit(o):
         spread = float(o.info["piecewise"].get("window_spread_m", 0.0))
