@@ -647,3 +647,22 @@ def test_an_unresolved_pair_keeps_its_drift_rate_for_the_adjustment():
     assert min(rate["time_b"]) < offsets[3].info["time_b"] < max(rate["time_b"])
     np.testing.assert_allclose(np.abs(np.diff(rate["time_b"])), 20.0 / 12.0, rtol=0.01)  # run b at 12 m/s
     assert 20.0 * 0.003 <= rate["sd_m"] < 20.0 * 0.005
+
+
+@pytest.mark.parametrize("flat_m, width", [(0.0, 0.05), (0.1, 0.25)])
+def test_a_pair_moved_onto_a_flat_topped_peak_is_placed_no_better_than_its_top(flat_m, width):
+    """A ring-jointed tube's fitness profile is flat at its top (1.0 over 20 cm of a held-out
+    tube, where a pair moved onto it sat 9 cm off claiming 2.6 cm): a pair moved onto a peak
+    whose top is ``width`` wide is placed to ``width / sqrt 12`` along the track, one step's
+    worth (5 cm) where the peak is sharp."""
+    offsets, trajs, s = _chain({7: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    prof = offsets[7].info["alias_profile"]
+    fitness = np.array(prof["fitness"])
+    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
+    peak = np.argmin(np.abs(ts + 3.0))  # the truth lies 3.0 m back from the matcher's choice
+    top = np.abs(ts - ts[peak]) <= flat_m + 1e-9
+    fitness[top] = fitness[peak]
+    offsets[7] = replace(offsets[7], info=dict(offsets[7].info, alias_profile=dict(prof, fitness=fitness.tolist())))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < width / 2
+    assert out[7].cov[0, 0] == pytest.approx(0.008**2 + width**2 / 12.0)
