@@ -384,14 +384,8 @@ def _peak_top_width(fitness: np.ndarray, peaks: np.ndarray, top_sd: np.ndarray) 
     joint its edge profile showed at 2.75-2.80 m."""
     out = np.ones(len(peaks))
     for k, (p, sd) in enumerate(zip(peaks, top_sd, strict=True)):  # a handful of candidates
-        level = fitness[p] - sd
-        lo = p
-        while lo > 0 and fitness[lo - 1] >= level:
-            lo -= 1
-        hi = p
-        while hi < len(fitness) - 1 and fitness[hi + 1] >= level:
-            hi += 1
-        out[k] = hi - lo + 1
+        below = np.flatnonzero(fitness < fitness[p] - sd)
+        out[k] = below[below > p].min(initial=len(fitness)) - below[below < p].max(initial=-1) - 1
     return out
 
 
