@@ -302,6 +302,8 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         found = edges
     if found is None:
         return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
+    if edges is not None and found is not edges:
+        found = found._replace(shift=_on_edges(found, edges.shift, float(prof["step"])))
     shift, movable, m, period, width = found
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
@@ -320,6 +322,21 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
                 rate_var=_rate_variance(pw, options), width=width)
+
+
+def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
+    """``found``'s shifts, each moved to the nearest peak of the edge profile (``edge_shift``)
+    within half its top's width where that top is wider than a ``step``. A flat fitness top
+    places an alias only to within its width (and the chain claims no better,
+    :func:`_placement_variance`); the edges may say where in it. On held-out tube 510 a top
+    25 cm wide put a pair 2.70 m on, 9.0 cm off; the edge profile's joint put it 2.2 cm off.
+    The matcher's own fit (shift 0) is placed by its windows and stays."""
+    shift = found.shift.copy()
+    for k in np.flatnonzero((shift != 0.0) & (found.width > 1.5 * step)):  # a handful of candidates
+        near = edge_shift[np.abs(edge_shift - shift[k]) <= 0.5 * found.width[k]]
+        if len(near):
+            shift[k] = near[np.argmin(np.abs(near - shift[k]))]
+    return shift
 
 
 def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:

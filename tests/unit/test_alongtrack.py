@@ -666,3 +666,24 @@ def test_a_pair_moved_onto_a_flat_topped_peak_is_placed_no_better_than_its_top(f
     out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
     assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < width / 2
     assert out[7].cov[0, 0] == pytest.approx(0.008**2 + width**2 / 12.0)
+
+
+def test_a_flat_topped_alias_is_placed_where_the_edge_profile_peaks_within_it():
+    """A fitness top 25 cm wide whose middle lies 5 cm short of the truth: the pair moved there
+    lands on the top's middle. Where the pair's edge profile peaks within that top (a ring
+    joint), it lands there; its sd still covers the top (held-out tube 510: 9.0 -> 2.2 cm)."""
+    offsets, trajs, s = _chain({7: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    prof = offsets[7].info["alias_profile"]
+    fitness = np.array(prof["fitness"])
+    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
+    peak = np.argmin(np.abs(ts + 3.0))  # the truth lies 3.0 m back from the matcher's choice
+    fitness[peak - 3: peak + 2] = fitness[peak]
+    edges = {"axis": prof["axis"], "start": prof["start"], "step": prof["step"], "source": "edges", "points": 4000,
+             "fitness": (0.8 + 0.1 * np.exp(-(((ts + 3.0) / 0.04) ** 2))).tolist(), "noise": [0.002] * len(ts)}
+    flat = dict(offsets[7].info, alias_profile=dict(prof, fitness=fitness.tolist()))
+    truth = _true_along(s[7:8])[0]
+    for info, off_by in ((flat, (0.025, 0.075)), (dict(flat, edge_profile=edges), (0.0, 0.01))):
+        offsets[7] = replace(offsets[7], info=info)
+        out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+        assert out[7].status == "coarse" and off_by[0] <= abs(out[7].d[0] - truth) < off_by[1]
+        assert out[7].cov[0, 0] == pytest.approx(0.008**2 + 0.25**2 / 12.0)
