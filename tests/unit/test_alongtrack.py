@@ -649,6 +649,18 @@ def test_an_unresolved_pair_keeps_its_drift_rate_for_the_adjustment():
     assert 20.0 * 0.003 <= rate["sd_m"] < 20.0 * 0.005
 
 
+def _flat_topped(o: TileOffset, top) -> dict:
+    """``o``'s info with its fitness profile flat, at the value of ``peak``, over the samples
+    ``top(ts, peak)`` selects (a mask or a slice); ``peak`` is the sample nearest the truth,
+    3.0 m back from the matcher's choice in ``_chain``."""
+    prof = o.info["alias_profile"]
+    fitness = np.array(prof["fitness"])
+    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
+    peak = int(np.argmin(np.abs(ts + 3.0)))
+    fitness[top(ts, peak)] = fitness[peak]
+    return dict(o.info, alias_profile=dict(prof, fitness=fitness.tolist()))
+
+
 @pytest.mark.parametrize("flat_m, width", [(0.0, 0.05), (0.1, 0.25)])
 def test_a_pair_moved_onto_a_flat_topped_peak_is_placed_no_better_than_its_top(flat_m, width):
     """A ring-jointed tube's fitness profile is flat at its top (1.0 over 20 cm of a held-out
@@ -656,13 +668,7 @@ def test_a_pair_moved_onto_a_flat_topped_peak_is_placed_no_better_than_its_top(f
     whose top is ``width`` wide is placed to ``width / sqrt 12`` along the track, one step's
     worth (5 cm) where the peak is sharp."""
     offsets, trajs, s = _chain({7: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
-    prof = offsets[7].info["alias_profile"]
-    fitness = np.array(prof["fitness"])
-    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
-    peak = np.argmin(np.abs(ts + 3.0))  # the truth lies 3.0 m back from the matcher's choice
-    top = np.abs(ts - ts[peak]) <= flat_m + 1e-9
-    fitness[top] = fitness[peak]
-    offsets[7] = replace(offsets[7], info=dict(offsets[7].info, alias_profile=dict(prof, fitness=fitness.tolist())))
+    offsets[7] = replace(offsets[7], info=_flat_topped(offsets[7], lambda ts, peak: np.abs(ts - ts[peak]) <= flat_m + 1e-9))
     out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
     assert out[7].status == "coarse" and abs(out[7].d[0] - _true_along(s[7:8])[0]) < width / 2
     assert out[7].cov[0, 0] == pytest.approx(0.008**2 + width**2 / 12.0)
@@ -673,14 +679,11 @@ def test_a_flat_topped_alias_is_placed_where_the_edge_profile_peaks_within_it():
     lands on the top's middle. Where the pair's edge profile peaks within that top (a ring
     joint), it lands there; its sd still covers the top (held-out tube 510: 9.0 -> 2.2 cm)."""
     offsets, trajs, s = _chain({7: 3.0}, statuses={0: "ok", 3: "ok", 6: "ok"})
-    prof = offsets[7].info["alias_profile"]
-    fitness = np.array(prof["fitness"])
-    ts = prof["start"] + prof["step"] * np.arange(len(fitness))
-    peak = np.argmin(np.abs(ts + 3.0))  # the truth lies 3.0 m back from the matcher's choice
-    fitness[peak - 3: peak + 2] = fitness[peak]
+    flat = _flat_topped(offsets[7], lambda ts, peak: slice(peak - 3, peak + 2))
+    prof = flat["alias_profile"]
+    ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
     edges = {"axis": prof["axis"], "start": prof["start"], "step": prof["step"], "source": "edges", "points": 4000,
              "fitness": (0.8 + 0.1 * np.exp(-(((ts + 3.0) / 0.04) ** 2))).tolist(), "noise": [0.002] * len(ts)}
-    flat = dict(offsets[7].info, alias_profile=dict(prof, fitness=fitness.tolist()))
     truth = _true_along(s[7:8])[0]
     for info, off_by in ((flat, (0.025, 0.075)), (dict(flat, edge_profile=edges), (0.0, 0.01))):
         offsets[7] = replace(offsets[7], info=info)
