@@ -48,6 +48,7 @@ class VotingOptions:
     window_length: float = 5.0  # m; refine per window along the track, fit a curve (0: one rigid ICP)
     min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
     intensity: bool = True  # place windows without edges by intensity marks (stains, paint) where the tiles have them
+    objects: bool = True  # ... and by short objects on a plain lining (boxes, cabinets, doors: 0.2-2 m along the track)
 
 
 @dataclass
@@ -71,7 +72,8 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
                             check_points=o.check_points, min_fitness=o.min_fitness,
                             ambiguity_ratio=o.ambiguity_ratio, max_sd=o.max_sd, target_voxel=o.target_voxel,
                             tie_positions=o.tie_positions, window_length=o.window_length,
-                            min_windows=o.min_windows, intensity=o.intensity)
+                            min_windows=o.min_windows, intensity=o.intensity,
+                            objects=o.objects)
     icp = IcpMatcher(max_misalignment=o.max_misalignment, target_voxel=o.target_voxel, min_fitness=o.min_fitness,
                      max_sd=o.max_sd, tie_radius=o.inlier_radius, tie_positions=o.tie_positions,
                      alias_check=False) if o.refine else None

@@ -16,6 +16,10 @@ residual is beyond :data:`MARK_SD` sd; it *agrees* with run a at a shift ``t`` w
 ``t`` along the track, it has a point of run a on a mark within ``radius`` whose residual is
 within :data:`AGREE_SD` sd of its own (a stain darkens its surface alike for every run).
 
+Points on short objects (boxes, cabinets, doors: :mod:`railtraj.matching.objects`) are marks
+too, whatever their intensity: such a point of run b agrees with run a where, moved, it has a
+point of run a's objects within ``radius``.
+
 The share of marked points that agree, over the shifts, is a profile like the geometric fitness
 profile: a mark gives one narrow peak (its two discs overlap most at the true shift), chance
 agreement a low floor. :func:`profile_peak` takes its centre only where nothing else rises
@@ -32,6 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import misfit_ratio
+from railtraj.matching.objects import MAX_LENGTH, short_objects
 
 #: cross-section cell (m, across and up) within which intensities are compared
 CELL = 0.1
@@ -103,20 +108,33 @@ class IntensityMarks:
     b_resid: np.ndarray
     b_sd: float
     radius: float  # m: how close run a's point must be
+    a_objects: cKDTree | None = None  # run a's points on short objects (:mod:`railtraj.matching.objects`)
+    b_object: np.ndarray | None = None  # mask of run b's points on short objects
 
     @classmethod
-    def build(cls, a_xyz: np.ndarray, a_intensity: np.ndarray, b_xyz: np.ndarray, b_intensity: np.ndarray,
-              frame: np.ndarray, origin: np.ndarray, radius: float) -> IntensityMarks:
+    def build(cls, a_xyz: np.ndarray, a_intensity: np.ndarray | None, b_xyz: np.ndarray,
+              b_intensity: np.ndarray | None, frame: np.ndarray, origin: np.ndarray, radius: float,
+              objects: bool = False) -> IntensityMarks:
         """``frame``: rows along, across, up (each run's residuals are its own: its cells need
-        not coincide with the other's)."""
+        not coincide with the other's). Without intensities (None) only ``objects`` mark."""
         a, b = (a_xyz - origin) @ frame.T, (b_xyz - origin) @ frame.T
-        a_resid, a_sd = residuals(a, a_intensity)
+        a_resid, a_sd = residuals(a, a_intensity) if a_intensity is not None else (np.zeros(len(a)), 0.0)
+        b_resid, b_sd = residuals(b, b_intensity) if b_intensity is not None else (np.zeros(len(b)), 0.0)
         keep = np.abs(a_resid) > AGREE_LEVEL * MARK_SD * a_sd  # only these can agree: a small tree
-        return cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, *residuals(b, b_intensity), radius)
+        a_objects, b_object = None, None
+        if objects:  # continuity along the track is looked for within twice the fitness radius
+            a_objects = cKDTree(a[short_objects(a_xyz, frame[0], 2 * radius)])
+            b_object = short_objects(b_xyz, frame[0], 2 * radius)
+        return cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, b_resid, b_sd, radius, a_objects, b_object)
+
+    def _on_objects(self, inside: np.ndarray) -> np.ndarray:
+        return inside & self.b_object if self.b_object is not None else np.zeros_like(inside)
 
     def marked(self, inside: np.ndarray) -> np.ndarray:
-        """Mask of run b's points among ``inside`` that lie on a mark (beyond :data:`MARK_SD`)."""
-        return inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
+        """Mask of run b's points among ``inside`` that lie on a mark (beyond :data:`MARK_SD`)
+        or on a short object."""
+        on_mark = inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
+        return on_mark | self._on_objects(inside)
 
     def agreement(self, marked: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
         """(len(ts), m) whether each of the m points of run b in ``marked`` (:meth:`marked`),
@@ -125,15 +143,20 @@ class IntensityMarks:
         offset = np.asarray(offset, float)
         pts = self.b_coords[marked] + (offset if offset.ndim == 1 else offset[marked])
         level = self.b_resid[marked]
+        on_object = self._on_objects(np.ones(len(self.b_coords), bool))[marked]
         out = np.zeros((len(ts), len(pts)), bool)
-        if not len(pts) or not self.a_sd > 0:
+        if not len(pts):
             return out
         lookup = np.append(self.a_resid, np.inf)  # a missing neighbour (index n) agrees with nothing
         tolerance = AGREE_SD * np.hypot(self.a_sd, self.b_sd)
         for k, t in enumerate(ts):  # up to 300 shifts, each one query of all marked points
-            _, idx = self.tree.query(pts + np.array([t, 0.0, 0.0]), distance_upper_bound=self.radius)
-            a_level = lookup[idx]
-            out[k] = np.abs(a_level - level) <= tolerance
+            moved = pts + np.array([t, 0.0, 0.0])
+            if self.a_sd > 0:
+                _, idx = self.tree.query(moved, distance_upper_bound=self.radius)
+                out[k] = np.abs(lookup[idx] - level) <= tolerance
+            if on_object.any() and self.a_objects.n:
+                near = self.a_objects.query(moved[on_object], distance_upper_bound=self.radius)[0] <= self.radius
+                out[k, on_object] = near
         return out
 
     def place(self, lo: float, hi: float, offset: np.ndarray, t_lo: float, t_hi: float) -> tuple[float, float]:
@@ -152,7 +175,9 @@ class IntensityMarks:
         agree = self.agreement(marked, offset, ts)
         if agree.shape[1] < MIN_MARKED:
             return float("nan"), float("nan")
-        t = profile_peak(ts, agree.mean(axis=1))
+        # a box's overlap is a tent as wide at half its rise as the box is long
+        width = MAX_LENGTH if self._on_objects(marked).any() else MAX_WIDTH
+        t = profile_peak(ts, agree.mean(axis=1), width)
         if not (np.isfinite(t) and peak_sd(ts, agree) <= MAX_SD):
             return float("nan"), float("nan")
         at = agree[int(np.argmin(np.abs(ts - t)))]
@@ -193,12 +218,12 @@ class LazyMarks:
             return self._marks
 
 
-def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
+def profile_peak(ts: np.ndarray, share: np.ndarray, max_width: float = MAX_WIDTH) -> float:
     """Centre of the single clear peak of an agreement profile, NaN if there is none.
 
     The floor is the profile's median (chance agreement, at most :data:`MAX_FLOOR` of the rise);
     the peak must rise :data:`MIN_RISE` above it, be at most :data:`MAX_WIDTH` wide at half its
-    rise, lie inside the range with its feet (where it falls to a tenth of its rise), and nothing
+    rise (``max_width``), lie inside the range with its feet (where it falls to a tenth of its rise), and nothing
     beyond its feet rise more than :data:`MAX_RIVAL` of it. Its centre is the centroid of
     the part above half its rise, which a disc's overlap (a tent, symmetric about the true shift)
     places without bias."""
@@ -208,7 +233,7 @@ def profile_peak(ts: np.ndarray, share: np.ndarray) -> float:
     foot, lo, hi = _extent(share - floor, k, 0.1 * rise)
     if lo == 0 or hi == len(ts) - 1:
         return float("nan")  # the peak runs off the range: its centre is not seen
-    if (hi_half - lo_half) * (ts[1] - ts[0]) > MAX_WIDTH:
+    if (hi_half - lo_half) * (ts[1] - ts[0]) > max_width:
         return float("nan")  # a step or a streak along the track: each run's view moves its centre
     if (~foot).any() and share[~foot].max() - floor > MAX_RIVAL * rise:
         return float("nan")

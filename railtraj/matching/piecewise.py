@@ -77,7 +77,7 @@ class Piecewise:
     windows: np.ndarray  # (k, 6): s, dx, dy, dz, used along (1/0), along found (1: its profile has a valley, 2: marks placed it, 0: neither)
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
-    marks: LazyMarks | None = None  # the clouds' intensity marks, where intensities were given
+    marks: LazyMarks | None = None  # the clouds' intensity marks and short objects, where looked for
 
     @property
     def on_marks(self) -> bool:
@@ -552,14 +552,15 @@ def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
 
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
                   length: float = 5.0, information: np.ndarray | None = None, tree: cKDTree | None = None,
-                  intensity: tuple[np.ndarray, np.ndarray] | None = None, **window_options) -> Piecewise | None:
+                  intensity: tuple[np.ndarray, np.ndarray] | None = None, objects: bool = False,
+                  **window_options) -> Piecewise | None:
     """Fit the curve of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
 
     ``target`` is the plane target of ``ref_xyz``; ``information`` a point-to-plane information
     matrix near ``d_start`` (for the track direction; fitted here if None); ``tree`` a KD-tree
     on ``ref_xyz`` (built if None); ``intensity`` the two clouds' intensities, which place
-    windows without edges where marks are (:func:`window_offsets`). Returns None when no window
-    could be placed.
+    windows without edges where marks are (:func:`window_offsets`), as do short ``objects``
+    (:mod:`railtraj.matching.objects`). Returns None when no window could be placed.
     """
     if information is None or not np.isfinite(information).all():
         information = point_to_plane(target, sample(moving, 20_000), d_start, iterations=3).information
@@ -569,8 +570,9 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
     tree = reference_tree(ref_xyz) if tree is None else tree
-    marks = None if intensity is None else LazyMarks(
-        ref_xyz, intensity[0], moving, intensity[1], track_frame(axis), origin, window_options.get("tau", 0.05))
+    a_intensity, b_intensity = (None, None) if intensity is None else intensity
+    marks = None if intensity is None and not objects else LazyMarks(
+        ref_xyz, a_intensity, moving, b_intensity, track_frame(axis), origin, window_options.get("tau", 0.05), objects)
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None

@@ -64,6 +64,7 @@ class VoteSettings:
     window_length: float = 5.0  # m; > 0: refine as a curve of offsets along the track (piecewise)
     min_windows: int = 4  # windows the curve needs for ok (fewer: no curvature, degenerate)
     intensity: bool = True  # windows without edges placed by intensity marks (matching.intensity)
+    objects: bool = True  # ... and by short objects, boxes and cabinets (matching.objects)
 
 
 def peak_table(checked) -> list[list[float]]:
@@ -144,7 +145,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
             (tile_a.intensity, tile_b.intensity[inside])
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
-                            chosen.fit.information, tree, intensity, min_windows=s.min_windows,
+                            chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
                             tau=s.fitness_radius, vote_window=(votes.center, votes.window))
         if fit is None:
             return None, inside, 0.0, 0.0, {}

@@ -1,0 +1,66 @@
+"""Points on short objects: the signal boxes, cabinets and doors of a featureless lining.
+
+A slab-track circular section has nothing in its shape that repeats, and nothing that says where
+along the track a point is, except the objects fixed to its walls every few tens of metres. A
+window's along-track profile (:func:`railtraj.matching.piecewise.along_costs`) does not see
+them: it measures distance across run a's surface, which a box's front face slides along, and its
+8 000 sampled points hold a few of a box's points at best (session 9: 0.1 % of a tile).
+
+Here every point of a cloud is asked whether the surface through it *ends* along the track
+within :data:`MAX_LENGTH` on both sides: moved along the track in :data:`STEP` steps, it finds no
+point of its own cloud within ``radius`` (twice the matcher's fitness radius, which follows the
+scan's profile spacing). Lining, floor, rails and cable trays run on; a box's faces end at the
+box. Such points are *marks* of their own (:mod:`railtraj.matching.intensity`): a box gives one
+peak where its two runs' points overlap, as wide as the box.
+
+Only points whose test stays inside the cloud's footprint are asked (a surface cut by the tile's
+edge ends there, in one run and not the other). Periodic parts shorter than MAX_LENGTH (sleepers,
+ribs) end too; their windows have edges and never ask, and where a profile of marks has a peak
+per period it is refused like repeated marks (:func:`railtraj.matching.intensity.profile_peak`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: longest object (m along the track) taken: boxes and cabinets are 0.4-1.2 m, doors about 1 m;
+#: a niche's back wall (2-3 m) has edges the windows see
+MAX_LENGTH = 2.0
+#: shortest (m): a lone point or a scan line's noise ends at once
+MIN_LENGTH = 0.2
+#: step (m) of the moves along the track
+STEP = 0.1
+
+
+def short_objects(xyz: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the points of ``xyz`` (n, 3) on surfaces that end along ``axis`` (unit,
+    horizontal) within :data:`MAX_LENGTH` on both sides, at least :data:`MIN_LENGTH` long.
+
+    Most points run on both ways for the whole length; only those that do not at
+    ``MAX_LENGTH`` one way or the other are followed step by step."""
+    out = np.zeros(len(xyz), bool)
+    if len(xyz) < 2:
+        return out
+    tree = cKDTree(xyz)
+    lo, hi = xyz[:, :2].min(axis=0) + radius, xyz[:, :2].max(axis=0) - radius
+
+    def found(p: np.ndarray) -> np.ndarray:
+        return tree.query(p, distance_upper_bound=radius, workers=-1)[0] <= radius
+
+    def within(p: np.ndarray) -> np.ndarray:
+        return np.all((p[:, :2] > lo) & (p[:, :2] < hi), axis=1)
+
+    reach = MAX_LENGTH * axis
+    asked = within(xyz + reach) & within(xyz - reach)
+    idx = np.flatnonzero(asked)
+    idx = idx[~(found(xyz[idx] + reach) & found(xyz[idx] - reach))]
+    p = xyz[idx]
+    ahead, behind = np.ones(len(idx), bool), np.ones(len(idx), bool)
+    length = np.zeros(len(idx))
+    for d in np.arange(STEP, MAX_LENGTH + STEP / 2, STEP):  # 20 moves of the few points left
+        ahead[ahead] = found(p[ahead] + d * axis)
+        behind[behind] = found(p[behind] - d * axis)
+        length += STEP * (ahead.astype(float) + behind)
+    out[idx[(length + STEP < MAX_LENGTH) & (length >= MIN_LENGTH)]] = True
+    return out
