@@ -13,8 +13,8 @@ scan's profile spacing). Lining, floor, rails and cable trays run on; a box's fa
 box. Such points are *marks* of their own (:mod:`railtraj.matching.intensity`): a box gives one
 peak where its two runs' points overlap, as wide as the box.
 
-Only points whose test stays inside the cloud's footprint are asked (a surface cut by the tile's
-edge ends there, in one run and not the other). Periodic parts shorter than MAX_LENGTH (sleepers,
+An end found outside the cloud's footprint is the tile's edge, not an object's (a surface cut by
+the tile's edge ends there, in one run and not the other); a box 0.5 m from the edge is still one. Periodic parts shorter than MAX_LENGTH (sleepers,
 ribs) end too; their windows have edges and never ask, and where a profile of marks has a peak
 per period it is refused like repeated marks (:func:`railtraj.matching.intensity.profile_peak`).
 """
@@ -37,8 +37,9 @@ def short_objects(xyz: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarra
     """Mask of the points of ``xyz`` (n, 3) on surfaces that end along ``axis`` (unit,
     horizontal) within :data:`MAX_LENGTH` on both sides, at least :data:`MIN_LENGTH` long.
 
-    Most points run on both ways for the whole length; only those that do not at
-    ``MAX_LENGTH`` one way or the other are followed step by step."""
+    Most points run on, one way or both, for the whole length (near the tile's edge only the
+    other way); only those that find nothing ``MAX_LENGTH`` away either way are followed step
+    by step (a box 2 m from another surface along the track is lost)."""
     out = np.zeros(len(xyz), bool)
     if len(xyz) < 2:
         return out
@@ -52,15 +53,18 @@ def short_objects(xyz: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarra
         return np.all((p[:, :2] > lo) & (p[:, :2] < hi), axis=1)
 
     reach = MAX_LENGTH * axis
-    asked = within(xyz + reach) & within(xyz - reach)
-    idx = np.flatnonzero(asked)
-    idx = idx[~(found(xyz[idx] + reach) & found(xyz[idx] - reach))]
+    idx = np.flatnonzero(~found(xyz + reach))
+    idx = idx[~found(xyz[idx] - reach)]
     p = xyz[idx]
-    ahead, behind = np.ones(len(idx), bool), np.ones(len(idx), bool)
-    length = np.zeros(len(idx))
+    ahead, behind = np.zeros(len(idx)), np.zeros(len(idx))  # how far each way the surface runs on
+    going_ahead, going_behind = np.ones(len(idx), bool), np.ones(len(idx), bool)
     for d in np.arange(STEP, MAX_LENGTH + STEP / 2, STEP):  # 20 moves of the few points left
-        ahead[ahead] = found(p[ahead] + d * axis)
-        behind[behind] = found(p[behind] - d * axis)
-        length += STEP * (ahead.astype(float) + behind)
-    out[idx[(length + STEP < MAX_LENGTH) & (length >= MIN_LENGTH)]] = True
+        going_ahead[going_ahead] = found(p[going_ahead] + d * axis)
+        going_behind[going_behind] = found(p[going_behind] - d * axis)
+        ahead += STEP * going_ahead
+        behind += STEP * going_behind
+    length = ahead + behind
+    # each way's first miss must lie inside the footprint: beyond it the surface ran off the tile
+    on_tile = within(p + (ahead + STEP)[:, None] * axis) & within(p - (behind + STEP)[:, None] * axis)
+    out[idx[(length + STEP < MAX_LENGTH) & (length >= MIN_LENGTH) & on_tile]] = True
     return out

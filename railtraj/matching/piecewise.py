@@ -576,21 +576,35 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
-    along = windows[:, 4] > 0
     s_ref = float(np.median(s))
-    floor = WINDOW_SD_FLOOR.copy()
-    if (windows[:, 4] == 2).any():  # a window placed by marks: along only to centimetres
-        floor[0] = MARKS_SD_FLOOR
-    coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
+    coefs, cov, used, sd = curve_through(windows, axis, s_ref)
     between = reference_position(s_ref, windows, used)
     if between != s_ref:  # which windows the curve keeps does not depend on s_ref
         s_ref = between
-        coefs, cov, used, sd = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
+        coefs, cov, used, sd = curve_through(windows, axis, s_ref)
     table = np.column_stack([windows[:, :4], used, windows[:, 4]]).astype(float)
     centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
     return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks)
+
+
+def curve_through(windows: np.ndarray, axis: np.ndarray, s_ref: float) -> tuple:
+    """:func:`fit_curve` through the rows of :func:`window_offsets`, along the track through those
+    that found an offset there, with the windows' sd floor: along the track
+    :data:`MARKS_SD_FLOOR` where the curve keeps a window placed by marks (to centimetres only),
+    else :data:`WINDOW_SD_FLOOR`. A window placed by marks that the curve drops leaves the
+    others their floor: on a portal survey a box's window sat 1.8 m from where the sleepers'
+    edges had put four windows (on an alias the chain then left), and the pair's along-track sd
+    doubled."""
+    along = windows[:, 4] > 0
+    floor = WINDOW_SD_FLOOR.copy()
+    if (windows[:, 4] == 2).any():
+        floor[0] = MARKS_SD_FLOOR
+    fit = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
+    if floor[0] == MARKS_SD_FLOOR and not (windows[fit[2], 4] == 2).any():
+        fit = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=WINDOW_SD_FLOOR)
+    return fit
 
 
 def reference_position(s_median: float, windows: np.ndarray, used: np.ndarray) -> float:

@@ -73,3 +73,12 @@ def test_boxes_a_metre_apart_repeat_and_place_nothing():
     b, _ = lining(rng, boxes, shift=0.3)
     marks = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True)
     assert np.isnan(marks.place(6.0, 10.0, np.zeros(3), -1.5, 1.5)[1])
+
+
+def test_a_box_half_a_metre_from_the_tile_edge_is_found_and_a_cut_surface_is_not():
+    rng = np.random.default_rng(4)
+    box = (LENGTH - 1.1, LENGTH - 0.5, 2.55, 0.5, 1.2)
+    xyz, on_box = lining(rng, boxes=(box,))
+    found = short_objects(xyz, np.array([1.0, 0.0, 0.0]), 0.1)
+    assert found[on_box].mean() > 0.6
+    assert found[~on_box].sum() < 0.01 * on_box.sum()  # the lining cut by both ends is no object

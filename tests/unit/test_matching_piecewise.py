@@ -17,6 +17,7 @@ from railtraj.matching.piecewise import (
     alias_ratio,
     along_costs,
     along_profile,
+    curve_through,
     edge_costs,
     edge_profile,
     fit_curve,
@@ -437,3 +438,18 @@ def test_a_pair_whose_every_shift_fits_every_point_is_never_ok():
     along = (off.d - d0) @ AXIS
     assert abs(along) > 1.0  # the dense check took a rival on a joint alias ...
     assert off.status == "ambiguous" and off.info["rival_misfit_ratio"] >= 0.8  # ... and says so
+
+
+def test_a_window_placed_by_marks_that_the_curve_drops_leaves_the_others_their_floor():
+    """Five windows placed by edges agree to 3 mm; a box's window (placed by marks) sits 1.8 m
+    from them. The curve drops it, and its along-track sd is the edges' own, not the marks'."""
+    rng = np.random.default_rng(5)
+    s = np.array([-10.0, -5.0, 0.0, 5.0, 10.0])
+    edges = np.column_stack([s, 1.7 + 0.003 * rng.standard_normal(5), np.full(5, 0.8), np.full(5, 0.01), np.ones(5)])
+    box = np.array([[-8.0, -0.1, 0.8, 0.01, 2.0]])
+    _, cov, used, _ = curve_through(np.vstack([box, edges]), AXIS, 0.0)
+    _, alone, _, _ = curve_through(edges, AXIS, 0.0)
+    assert not used[0] and used[1:].all()
+    assert np.sqrt(cov[0, 0]) == pytest.approx(np.sqrt(alone[0, 0]))  # 2 cm floor: twice that
+    _, cov, used, _ = curve_through(np.vstack([box, edges[:3] * [1, 0, 1, 1, 0]]), AXIS, 0.0)
+    assert used[0] and np.sqrt(cov[0, 0]) >= 0.02 / np.sqrt(2)  # kept: along to centimetres only
