@@ -14,9 +14,10 @@ box. Such points are *marks* of their own (:mod:`railtraj.matching.intensity`): 
 peak where its two runs' points overlap, as wide as the box.
 
 An end found outside the cloud's footprint is the tile's edge, not an object's (a surface cut by
-the tile's edge ends there, in one run and not the other); a box 0.5 m from the edge is still one. Periodic parts shorter than MAX_LENGTH (sleepers,
-ribs) end too; their windows have edges and never ask, and where a profile of marks has a peak
-per period it is refused like repeated marks (:func:`railtraj.matching.intensity.profile_peak`).
+the tile's edge ends there, in one run and not the other); a box 0.5 m from the edge is still
+one. Periodic parts shorter than MAX_LENGTH (sleepers, ribs) end too; their windows have edges
+and never ask, and where a profile of marks has a peak per period it is refused like repeated
+marks (:func:`railtraj.matching.intensity.profile_peak`).
 """
 
 from __future__ import annotations
