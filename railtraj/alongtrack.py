@@ -805,9 +805,9 @@ def _unchecked_fit(o: TileOffset) -> bool:
     2 cm range noise one such pair, fixed on its own fit, sat 11.8 cm off claiming 2.0 cm.
     The chain does not fix it: it is observed where the chain predicts, across and up only.
 
-    Windows placed by intensity marks alone are another matter: the pair's offset is given at
-    them (its reference point lies between them), and its alias profile, the marks' own, spans
-    the whole search window."""
+    Windows placed by marks alone (intensity, short objects) are another matter: the pair's
+    offset is given at them (its reference point lies between them), and its alias profile, the
+    marks' own, spans the whole search window."""
     windows = o.info["piecewise"].get("windows")
     if windows is None or not _degenerate_fit(o) or _along_windows(windows) > 2:
         return False
@@ -816,7 +816,7 @@ def _unchecked_fit(o: TileOffset) -> bool:
 
 def _on_few_marks(o: TileOffset) -> bool:
     """Whether the pair's along-track offset rests on one or two windows, all placed by
-    intensity marks: nothing checks them against each other."""
+    marks (intensity, short objects): nothing checks them against each other."""
     windows = o.info.get("piecewise", {}).get("windows") or []
     along = [w for w in windows if len(w) >= 6 and w[5] > 0]
     return 0 < len(along) <= 2 and all(w[5] == 2 for w in along)
