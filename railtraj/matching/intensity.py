@@ -143,7 +143,7 @@ class IntensityMarks:
         offset = np.asarray(offset, float)
         pts = self.b_coords[marked] + (offset if offset.ndim == 1 else offset[marked])
         level = self.b_resid[marked]
-        on_object = self._on_objects(np.ones(len(self.b_coords), bool))[marked]
+        on_object = self._on_objects(marked)[marked]
         out = np.zeros((len(ts), len(pts)), bool)
         if not len(pts):
             return out
