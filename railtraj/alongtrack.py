@@ -95,6 +95,9 @@ class Curve:
 #: 7.8 cm, 5.4 sd of the 1.5 cm they claimed); one window of a pair sat 12.6 cm off where the
 #: other was right to 0.7 cm, and two windows cannot check each other
 MARKS_PAIR_SD = 0.03
+#: a pair resting on one mark (a box, a stain) is fixed only where the chain predicts it to this
+#: fraction of ``min_period`` (sd): see :func:`_resolve_chain`
+LONE_MARK_PREDICTION = 1.0 / 3.0
 #: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
 NO_EVIDENCE = "no along-track evidence"
 #: status of a pair fixed on its alias whose own along-track sd exceeds ``max_ok_sd``: the alias
@@ -135,6 +138,9 @@ class Pair:
     rate_var: float | None = None
     # (k,) m: how wide each candidate's peak is at its top (Peaks.width; None: one step)
     width: np.ndarray | None = None
+    # whether its along-track evidence is marks whose profile shows one peak (a box, a stain):
+    # its ``period`` then reaches the profile's nearer end (see _candidates)
+    lone_mark: bool = False
 
 
 class Peaks(NamedTuple):
@@ -305,6 +311,12 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     if edges is not None and found is not edges:
         found = found._replace(shift=_on_edges(found, edges.shift, float(prof["step"])))
     shift, movable, m, period, width = found
+    # marks are no repeated structure: their profile, searched over the whole window, shows every
+    # alias there is, so an alias it shows no peak for lies beyond the profile's nearer end
+    lone_mark = found is not edges and prof.get("source") == "marks" and len(shift) == 1
+    if lone_mark:
+        ts_end = prof["start"] + prof["step"] * (len(prof["fitness"]) - 1)
+        period = max(period, min(shift[0] - prof["start"], ts_end - shift[0]))
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
     axis = np.asarray(pw["axis"], float)
@@ -321,7 +333,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
-                rate_var=_rate_variance(pw, options), width=width)
+                rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark)
 
 
 def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
@@ -558,7 +570,16 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
       windows' fit is a disagreement, not an alias (it sat 11 cm off, in the demo's circular
       section),
     * and that alias stands out within a period of itself, not only against the whole window
-      (``Pair.movable``; a flat profile's top sample is no alias).
+      (``Pair.movable``; a flat profile's top sample is no alias),
+    * and, for a pair resting on one mark (``Pair.lone_mark``: a box, a stain; it is charged no
+      alias within its profile), the chain predicts it to ``LONE_MARK_PREDICTION`` times
+      ``min_period`` (sd) or better. Fixed, a lone mark's correction is spread by the adjustment
+      over the gaps to the next evidence either side, and where the runs' drift turns within
+      them that hurts: on feature_poor 0 a box 55 m from one portal's pairs and 350 m from the
+      other's (predicted to 0.21 m), placed right to 5 mm, put the runs 0.3-0.48 m apart where
+      they had been 0.2 m (inter-run RMS 0.17 -> 0.24 m, the input's 0.18). In the demo's
+      circular section a box 134 and 48 m from fixed pairs (predicted to 0.135 m) took the
+      inter-run max from 11.8 to 7.4 cm.
 
     Fixed pairs then anchor the next round, until no pair can be fixed. ``walks`` is the drift
     rate's wander per step (:func:`_rate_walks`). Returns, per pair, the
@@ -587,6 +608,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             unseen = (p.u[best] - k * period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
+            if p.lone_mark:  # its correction spreads over the gaps either side: only where they are short
+                near = near and var[i] <= (LONE_MARK_PREDICTION * options.min_period) ** 2
             # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that;
             # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not

@@ -690,3 +690,39 @@ def test_a_flat_topped_alias_is_placed_where_the_edge_profile_peaks_within_it():
         out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
         assert out[7].status == "coarse" and off_by[0] <= abs(out[7].d[0] - truth) < off_by[1]
         assert out[7].cov[0, 0] == pytest.approx(0.008**2 + 0.25**2 / 12.0)
+
+
+def _lone_box(ok: tuple[int, ...], lone: int) -> tuple[list[TileOffset], dict[str, Trajectory], np.ndarray]:
+    """A chain with ok pairs at ``ok``, no along-track evidence elsewhere (a plain tube) but one
+    pair resting on a box: one window placed by marks, whose profile (a tent at the windows' fit,
+    searched over 6 m) shows nothing else."""
+    offsets, trajs, s = _chain({}, statuses={k: "ok" for k in ok})
+    for k in set(range(len(s))) - set(ok):
+        flat = dict(offsets[k].info["alias_profile"], fitness=[0.9] * len(offsets[k].info["alias_profile"]["fitness"]))
+        offsets[k] = replace(offsets[k], info=dict(offsets[k].info, alias_profile=flat))
+    ts = -2.0 + 0.05 * np.arange(120)
+    tent = 0.1 + 0.3 * np.clip(1.0 - np.abs(ts) / 0.5, 0.0, None)
+    o = offsets[lone]
+    pw = dict(o.info["piecewise"], windows=[[0.0, 0, 0, 0, 1, 2]], fit_cov=(np.diag([0.02, 0.003, 0.003]) ** 2).tolist())
+    profile = {"axis": [1.0, 0.0, 0.0], "start": -2.0, "step": 0.05, "fitness": tent.tolist(), "points": 400,
+               "source": "marks"}
+    d = np.array([_true_along(s[lone:lone + 1])[0], *o.d[1:]])
+    offsets[lone] = replace(o, d=d, status="degenerate", info=dict(o.info, piecewise=pw, alias_profile=profile))
+    return offsets, trajs, s
+
+
+@pytest.mark.parametrize(("lone", "fixed"), [(4, True), (8, True), (6, False)])
+def test_a_lone_box_is_fixed_only_where_the_chain_predicts_it_closely(lone, fixed):
+    """A box's profile shows every alias within the search window (none): it is not charged one
+    half a metre away. 50 m from the portal's pairs the chain predicts it to 0.145 m and it is
+    fixed (coarse: one window, nothing checks it); in the middle of a 200 m gap (0.22 m) it is
+    not, for its correction would be spread over the whole gap."""
+    offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), lone)
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    row = next(r for r in report if r["pair"] == lone)
+    assert (out[lone].status == "coarse") == fixed, (out[lone].status, row)
+    if fixed:
+        assert abs(out[lone].d[0] - _true_along(s[lone:lone + 1])[0]) < 0.01
+        assert np.sqrt(out[lone].cov[0, 0]) >= 0.03  # MARKS_PAIR_SD: one window placed by marks
+    else:
+        assert not np.sqrt(out[lone].cov[0, 0]) < 1.0  # not along the track (on one window: not at all)

@@ -82,3 +82,40 @@ def test_a_box_half_a_metre_from_the_tile_edge_is_found_and_a_cut_surface_is_not
     found = short_objects(xyz, np.array([1.0, 0.0, 0.0]), 0.1)
     assert found[on_box].mean() > 0.6
     assert found[~on_box].sum() < 0.01 * on_box.sum()  # the lining cut by both ends is no object
+
+
+def test_a_box_is_placed_among_many_chance_intensity_marks_of_one_run():
+    """Run b views the lining from the other track: 5 % of its points are marked by chance
+    (far beyond its intensity's sd) and agree with nothing in run a. Pooled with the box's
+    points they keep its peak below the rise a mark needs; each kind is placed on its own."""
+    rng = np.random.default_rng(8)
+    a, _ = lining(rng)
+    b, _ = lining(rng, shift=0.43)
+    a_intensity = np.exp(rng.normal(6.0, 0.1, len(a)))
+    b_intensity = np.exp(rng.normal(6.0, 0.1, len(b)) + np.where(rng.random(len(b)) < 0.05, 1.5, 0.0))
+    marks = IntensityMarks.build(a, a_intensity, b, b_intensity, np.eye(3), np.zeros(3), radius=0.05, objects=True)
+    s, t = marks.place(5.0, 10.0, np.zeros(3), -1.5, 1.5)
+    assert abs(t - 0.43) < 0.02
+    assert abs(s - (8.35 - 0.43)) < 0.3
+    # the pair's along-track profile is the box's too: it peaks at the curve, most of it agreeing
+    _, _, profile = marks.alias_ratio(np.tile([0.43, 0.0, 0.0], (len(b), 1)), -1.5, 1.5)
+    ts = profile["start"] + profile["step"] * np.arange(len(profile["fitness"]))
+    assert abs(ts[np.argmax(profile["fitness"])]) < 0.06 and max(profile["fitness"]) > 0.8
+
+
+@pytest.mark.parametrize(("disc_shift", "placed"), [(0.43, True), (0.9, False)])
+def test_a_box_and_a_painted_mark_that_disagree_place_nothing(disc_shift, placed):
+    """A bright disc on the lining is placed by the intensity, the box by its shape: where the
+    two agree the window is placed, where they are 0.47 m apart neither is trusted."""
+    rng = np.random.default_rng(8)
+    a, _ = lining(rng)
+    b, _ = lining(rng, shift=0.43)
+
+    def painted(xyz, centre):
+        disc = np.hypot(xyz[:, 0] - centre, xyz[:, 2] - 2.0) < 0.3
+        return np.exp(rng.normal(6.0, 0.1, len(xyz)) + np.where(disc, 1.5, 0.0))
+
+    marks = IntensityMarks.build(a, painted(a, 6.0), b, painted(b, 6.0 - disc_shift), np.eye(3), np.zeros(3),
+                                 radius=0.05, objects=True)
+    t = marks.place(5.0, 10.0, np.zeros(3), -1.5, 1.5)[1]
+    assert (abs(t - 0.43) < 0.02) if placed else np.isnan(t)
