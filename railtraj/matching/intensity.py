@@ -153,14 +153,16 @@ class IntensityMarks:
             return out
         lookup = np.append(self.a_resid, np.inf)  # a missing neighbour (index n) agrees with nothing
         tolerance = AGREE_SD * np.hypot(self.a_sd, self.b_sd)
-        for k, t in enumerate(ts):  # up to 300 shifts, each one query of all marked points
+        # a point on an object is judged by run a's objects where there are any, else by its intensity
+        by_object = on_object if self.a_objects is not None and self.a_objects.n else np.zeros_like(on_object)
+        by_level = ~by_object if self.a_sd > 0 else np.zeros_like(by_object)
+        for k, t in enumerate(ts):  # up to 300 shifts, each one query of the marked points
             moved = pts + np.array([t, 0.0, 0.0])
-            if self.a_sd > 0:
-                _, idx = self.tree.query(moved, distance_upper_bound=self.radius)
-                out[k] = np.abs(lookup[idx] - level) <= tolerance
-            if on_object.any() and self.a_objects.n:
-                near = self.a_objects.query(moved[on_object], distance_upper_bound=self.radius)[0] <= self.radius
-                out[k, on_object] = near
+            if by_level.any():
+                _, idx = self.tree.query(moved[by_level], distance_upper_bound=self.radius)
+                out[k, by_level] = np.abs(lookup[idx] - level[by_level]) <= tolerance
+            if by_object.any():
+                out[k, by_object] = self.a_objects.query(moved[by_object], distance_upper_bound=self.radius)[0] <= self.radius
         return out
 
     def place(self, lo: float, hi: float, offset: np.ndarray, t_lo: float, t_hi: float) -> tuple[float, float]:

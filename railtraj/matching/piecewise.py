@@ -597,12 +597,13 @@ def curve_through(windows: np.ndarray, axis: np.ndarray, s_ref: float) -> tuple:
     others their floor: on a portal survey a box's window sat 1.8 m from where the sleepers'
     edges had put four windows (on an alias the chain then left), and the pair's along-track sd
     doubled."""
-    along = windows[:, 4] > 0
+    along, by_marks = windows[:, 4] > 0, windows[:, 4] == 2
+    if not by_marks.any():
+        return fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=WINDOW_SD_FLOOR)
     floor = WINDOW_SD_FLOOR.copy()
-    if (windows[:, 4] == 2).any():
-        floor[0] = MARKS_SD_FLOOR
+    floor[0] = MARKS_SD_FLOOR
     fit = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=floor)
-    if floor[0] == MARKS_SD_FLOOR and not (windows[fit[2], 4] == 2).any():
+    if not by_marks[fit[2]].any():  # the curve dropped them: the others keep their own floor
         fit = fit_curve(windows[:, :4], axis, s_ref, along=along, sd_floor=WINDOW_SD_FLOOR)
     return fit
 
