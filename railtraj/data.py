@@ -164,10 +164,15 @@ class PointTile:
     intensity: np.ndarray | None = None
     run_id: str = ""
     name: str = ""
+    # (m, 3) the run's points just beyond the tile (its neighbouring tiles): what a test of a
+    # surface's shape may look at past the tile's edge (railtraj.matching.objects); never matched
+    context: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "xyz", _as_array("xyz", self.xyz, (3,)))
         object.__setattr__(self, "gps_time", _as_array("gps_time", self.gps_time, ()))
+        if self.context is not None:
+            object.__setattr__(self, "context", _as_array("context", self.context, (3,)))
         if len(self.gps_time) != len(self.xyz):
             raise ValueError(f"tile {self.name!r}: {len(self.xyz)} points but {len(self.gps_time)} gps_time values")
         if self.intensity is not None:
@@ -186,13 +191,15 @@ class PointTile:
         return extent(self.xyz)
 
     def subset(self, mask: np.ndarray) -> PointTile:
-        """The points selected by a boolean mask or index array."""
+        """The points selected by a boolean mask or index array (without the context: what
+        lies around a part of the tile is not what lies around the tile)."""
         return replace(self, xyz=self.xyz[mask], gps_time=self.gps_time[mask],
-                       intensity=None if self.intensity is None else self.intensity[mask])
+                       intensity=None if self.intensity is None else self.intensity[mask], context=None)
 
     def translated(self, d: np.ndarray) -> PointTile:
         """A copy with every point moved by the vector ``d``."""
-        return replace(self, xyz=self.xyz + np.asarray(d, dtype=float))
+        d = np.asarray(d, dtype=float)
+        return replace(self, xyz=self.xyz + d, context=None if self.context is None else self.context + d)
 
 
 @dataclass(frozen=True)

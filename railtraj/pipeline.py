@@ -43,8 +43,10 @@ from railtraj.io.survey import (
     open_survey,
     require_overlaps,
     unparsed_crs_note,
+    with_context,
 )
 from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
+from railtraj.matching.objects import CONTEXT_M
 from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
@@ -260,7 +262,7 @@ def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
                               "(e.g. 530000_180025.laz) or 'x,y' inside a tile of two runs")
     if options.max_pairs > 0:
         pairs = pairs[: options.max_pairs]
-    return pairs
+    return with_context(pairs, survey, options.max_misalignment_m + CONTEXT_M)
 
 
 def visit_order(pairs: list[TilePair]) -> list[int]:
@@ -319,8 +321,8 @@ def match_pair(job: tuple) -> PairResult:
 
     t = time.perf_counter()
     tiles = tile_cache(options.tile_cache_gb)
-    tile_a = tiles.read(pair.tile_a.path, run_id=pair.run_a, bbox=(lo, hi))
-    tile_b = tiles.read(pair.tile_b.path, run_id=pair.run_b, bbox=(lo, hi))
+    tile_a = tiles.read_with_context(pair.tile_a.path, pair.run_a, pair.context_a, (lo, hi), CONTEXT_M)
+    tile_b = tiles.read_with_context(pair.tile_b.path, pair.run_b, pair.context_b, (lo, hi), CONTEXT_M)
     kp_a, kp_b = (kp.subset(np.flatnonzero(((kp.xyz >= lo) & (kp.xyz <= hi)).all(axis=1))) for kp in (kp_a, kp_b))
     seconds["read"] += time.perf_counter() - t
 

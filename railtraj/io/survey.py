@@ -150,6 +150,10 @@ class TilePair:
     tile_b: TileHeader
     overlap_min: np.ndarray
     overlap_max: np.ndarray
+    # each run's tiles that hold points near the pair's box (its own included): where the points
+    # just beyond the box are read (:func:`with_context`)
+    context_a: tuple[Path, ...] = ()
+    context_b: tuple[Path, ...] = ()
 
 
 def _bounds(tiles: list[TileHeader]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -201,6 +205,21 @@ def in_parts(pairs: list[TilePair], part_m: float) -> list[TilePair]:
                         overlap_max=np.array([ex[i + 1], ey[j + 1], p.overlap_max[2]]))
                 for i in range(n[0]) for j in range(n[1])]
     return out
+
+
+def with_context(pairs: list[TilePair], survey: Survey, reach: float) -> list[TilePair]:
+    """``pairs`` with, per run, the tiles whose boxes come within ``reach`` (m, in plan) of the
+    pair's overlap box: a surface cut by a tile's edge is whole there (a box across run a's tile
+    boundary, :mod:`railtraj.matching.objects`)."""
+    bounds = {r: _bounds(info.tiles) for r, info in survey.runs.items()}
+
+    def near(run: str, lo: np.ndarray, hi: np.ndarray) -> tuple[Path, ...]:
+        mins, maxs, nonempty = bounds[run]
+        hit = nonempty & np.all((mins[:, :2] <= hi + reach) & (maxs[:, :2] >= lo - reach), axis=1)
+        return tuple(survey.runs[run].tiles[k].path for k in np.flatnonzero(hit))
+
+    return [replace(p, context_a=near(p.run_a, p.overlap_min[:2], p.overlap_max[:2]),
+                    context_b=near(p.run_b, p.overlap_min[:2], p.overlap_max[:2])) for p in pairs]
 
 
 def require_overlaps(pairs: list[TilePair], survey: Survey) -> list[TilePair]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
+from dataclasses import replace
 
 import numpy as np
 
@@ -65,6 +66,23 @@ class TileCache:
         if bbox is None:
             return tile
         return crop(tile, np.asarray(bbox[0], float), np.asarray(bbox[1], float))
+
+    def read_with_context(self, path: str | os.PathLike, run_id: str, around: tuple[os.PathLike, ...],
+                          bbox: tuple[np.ndarray, np.ndarray], reach: float) -> PointTile:
+        """The tile at ``path`` inside ``bbox``, with its context (``PointTile.context``): the
+        run's points within ``reach`` (m, in plan) of the box that the crop does not hold, read
+        from the tiles ``around`` (its own among them, beyond the box). The box reaches past the
+        tile's edge, and the next tile's points there are context too."""
+        lo, hi = (np.asarray(corner, float) for corner in bbox)
+        tile = self.read(path, run_id=run_id, bbox=(lo, hi))
+        grow = np.array([reach, reach, 0.0])
+        parts = []
+        for other in around:
+            xyz = self.read(other, run_id=run_id, bbox=(lo - grow, hi + grow)).xyz
+            if os.fspath(other) == os.fspath(path):
+                xyz = xyz[~((xyz >= lo) & (xyz <= hi)).all(axis=1)]
+            parts.append(xyz)
+        return replace(tile, context=np.vstack(parts) if parts else np.zeros((0, 3)))
 
     def _store(self, key: tuple, tile: PointTile) -> None:
         size = tile_bytes(tile)

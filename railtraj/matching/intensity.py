@@ -31,9 +31,12 @@ the track (a section's end) a ramp as wide as a run's view of it; both are refus
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import misfit_ratio
@@ -70,6 +73,8 @@ MAX_WIDTH = 1.0
 MAX_SD = 0.02
 #: how far (m) beyond a window's ends its marks are taken whole (the largest mark's radius and more)
 REACH = 0.75
+#: points of run b's short objects closer than this (m) are one object (:func:`held_objects`)
+OBJECT_GAP = 0.3
 #: step (m) of the shifts searched in a window, and in a pair's alias profile (which places
 #: nothing: the chain only tells its peaks apart, like the geometric profile's 5 cm steps)
 STEP, ALIAS_STEP = 0.02, 0.05
@@ -101,9 +106,20 @@ def residuals(coords: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, fl
     return r, (1.4826 * float(np.median(np.abs(r[r != 0]))) if (r != 0).any() else 0.0)
 
 
+@dataclass(frozen=True)
+class Surroundings:
+    """What lies around a tile pair's clouds: where a short object cut by a tile's edge is seen
+    whole (:func:`held_objects`)."""
+
+    a: np.ndarray  # (k, 3) run a's points around its tile (``PointTile.context``)
+    b: np.ndarray  # (m, 3) run b's points around its cloud: the rest of its tile, and its context
+    b_holds: Callable[[np.ndarray], np.ndarray]  # mask: world points of run b the pair holds (in run a's tile)
+
+
 @dataclass
 class IntensityMarks:
-    """Run a's intensity residuals and run b's, in one track frame, to slide run b along."""
+    """Run a's intensity residuals and run b's, and each run's short objects, in one track
+    frame, to slide run b along."""
 
     tree: cKDTree  # run a's points (along, across, up) that may agree (beyond AGREE_LEVEL of a mark)
     a_resid: np.ndarray  # their log-intensity residuals (:func:`residuals`)
@@ -112,58 +128,60 @@ class IntensityMarks:
     b_resid: np.ndarray
     b_sd: float
     radius: float  # m: how close run a's point must be
+    frame: np.ndarray  # rows along, across, up (world directions)
+    origin: np.ndarray  # world point of the frame's origin
     a_objects: cKDTree | None = None  # run a's points on short objects (:mod:`railtraj.matching.objects`)
-    b_object: np.ndarray | None = None  # mask of run b's points on short objects
+    b_objects: np.ndarray | None = None  # (m, 3) run b's points on the short objects the pair holds (:func:`held_objects`)
+    b_object_at: np.ndarray | None = None  # (m,) along-track centre of each one's object
 
     @classmethod
     def build(cls, a_xyz: np.ndarray, a_intensity: np.ndarray | None, b_xyz: np.ndarray,
               b_intensity: np.ndarray | None, frame: np.ndarray, origin: np.ndarray, radius: float,
-              objects: bool = False) -> IntensityMarks:
+              objects: bool = False, around: Surroundings | None = None) -> IntensityMarks:
         """``frame``: rows along, across, up (each run's residuals are its own: its cells need
-        not coincide with the other's). Without intensities (None) only ``objects`` mark."""
+        not coincide with the other's). Without intensities (None) only ``objects`` mark, seen
+        whole with what lies ``around`` the clouds (:func:`held_objects`)."""
         a, b = (a_xyz - origin) @ frame.T, (b_xyz - origin) @ frame.T
         a_resid, a_sd = residuals(a, a_intensity) if a_intensity is not None else (np.zeros(len(a)), 0.0)
         b_resid, b_sd = residuals(b, b_intensity) if b_intensity is not None else (np.zeros(len(b)), 0.0)
         keep = np.abs(a_resid) > AGREE_LEVEL * MARK_SD * a_sd  # only these can agree: a small tree
-        a_objects, b_object = None, None
+        out = cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, b_resid, b_sd, radius, frame, origin)
         if objects:  # continuity along the track is looked for within twice the fitness radius
-            a_objects = cKDTree(a[short_objects(a_xyz, frame[0], 2 * radius)])
-            b_object = short_objects(b_xyz, frame[0], 2 * radius)
-        return cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, b_resid, b_sd, radius, a_objects, b_object)
-
-    def _on_objects(self, inside: np.ndarray) -> np.ndarray:
-        return inside & self.b_object if self.b_object is not None else np.zeros_like(inside)
+            a_all, b_all = (a_xyz, b_xyz) if around is None else (np.vstack([a_xyz, around.a]), np.vstack([b_xyz, around.b]))
+            out.a_objects = cKDTree((a_all[short_objects(a_all, frame[0], 2 * radius)] - origin) @ frame.T)
+            on = b_all[short_objects(b_all, frame[0], 2 * radius)]
+            holds = around.b_holds if around is not None else lambda xyz: np.ones(len(xyz), bool)
+            out.b_objects, out.b_object_at = held_objects((on - origin) @ frame.T,
+                                                           lambda c: holds(c @ frame + origin))
+        return out
 
     def marked(self, inside: np.ndarray) -> np.ndarray:
-        """Mask of run b's points among ``inside`` that lie on a mark (beyond :data:`MARK_SD`)
-        or on a short object."""
-        on_mark = inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
-        return on_mark | self._on_objects(inside)
+        """Mask of run b's points among ``inside`` that lie on an intensity mark (beyond
+        :data:`MARK_SD`)."""
+        return inside & (np.abs(self.b_resid) > MARK_SD * self.b_sd) if self.b_sd > 0 else np.zeros_like(inside)
 
     def agreement(self, marked: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
         """(len(ts), m) whether each of the m points of run b in ``marked`` (:meth:`marked`),
-        moved by ``offset`` (track frame: one (3,), or one per point of run b (n, 3)) and then
-        ``t`` along the track, agrees with run a."""
-        offset = np.asarray(offset, float)
-        pts = self.b_coords[marked] + (offset if offset.ndim == 1 else offset[marked])
+        moved by ``offset`` (track frame: one (3,), or one per marked point (m, 3)) and then
+        ``t`` along the track, has a point of run a on a mark within the radius whose residual
+        is within :data:`AGREE_SD` sd of its own."""
         level = self.b_resid[marked]
-        on_object = self._on_objects(marked)[marked]
-        out = np.zeros((len(ts), len(pts)), bool)
-        if not len(pts):
-            return out
         lookup = np.append(self.a_resid, np.inf)  # a missing neighbour (index n) agrees with nothing
         tolerance = AGREE_SD * np.hypot(self.a_sd, self.b_sd)
-        # a point on an object is judged by run a's objects where there are any, else by its intensity
-        by_object = on_object if self.a_objects is not None and self.a_objects.n else np.zeros_like(on_object)
-        by_level = ~by_object if self.a_sd > 0 else np.zeros_like(by_object)
-        for k, t in enumerate(ts):  # up to 300 shifts, each one query of the marked points
-            moved = pts + np.array([t, 0.0, 0.0])
-            if by_level.any():
-                _, idx = self.tree.query(moved[by_level], distance_upper_bound=self.radius)
-                out[k, by_level] = np.abs(lookup[idx] - level[by_level]) <= tolerance
-            if by_object.any():
-                out[k, by_object] = self.a_objects.query(moved[by_object], distance_upper_bound=self.radius)[0] <= self.radius
-        return out
+
+        def agrees(moved: np.ndarray) -> np.ndarray:
+            return np.abs(lookup[self.tree.query(moved, distance_upper_bound=self.radius)[1]] - level) <= tolerance
+
+        return _profile(self.b_coords[marked] + offset, ts, agrees if self.a_sd > 0 else None)
+
+    def object_agreement(self, mine: np.ndarray, offset: np.ndarray, ts: np.ndarray) -> np.ndarray:
+        """(len(ts), m) whether each of the m points of run b's objects in ``mine`` (a mask of
+        :attr:`b_objects`), moved by ``offset`` (as in :meth:`agreement`) and ``t``, has a point
+        of run a's objects within the radius."""
+        def agrees(moved: np.ndarray) -> np.ndarray:
+            return self.a_objects.query(moved, distance_upper_bound=self.radius)[0] <= self.radius
+
+        return _profile(self.b_objects[mine] + offset, ts, agrees if self.a_objects.n else None)
 
     def place(self, lo: float, hi: float, offset: np.ndarray, t_lo: float, t_hi: float) -> tuple[float, float]:
         """Where the marks of the window ``[lo, hi]`` (along-track, as :attr:`b_coords`) lie and
@@ -171,10 +189,12 @@ class IntensityMarks:
         ``(s, t)``, NaN when the profile has no single clear peak (:func:`profile_peak`).
 
         Marks are whole: the window reaches :data:`REACH` beyond its ends (a disc cut in half by
-        the window's end is matched against a whole one, and its peak leans). ``s`` is the
-        median position of the marked points that agree at the peak, for drift changes the
-        offset along the window (18 mm/m is 4.5 cm at its end); a mark there that lies beyond
-        the window is left to the next one.
+        the window's end is matched against a whole one, and its peak leans), and takes the
+        objects whose centre it holds (the first and last window those the pair holds beyond
+        run b's cloud: a box in run b's next tile that lies in run a's), all of their points.
+        ``s`` is the median position of the marked points that agree at the peak, for drift
+        changes the offset along the window (18 mm/m is 4.5 cm at its end); an intensity mark
+        there that lies beyond the window is left to the next one.
 
         Intensity marks and short objects are placed each on their own (:func:`_placed`), and
         the one placed more precisely is taken; where both are placed more than
@@ -185,44 +205,90 @@ class IntensityMarks:
         s = self.b_coords[:, 0]
         ts = np.arange(t_lo, t_hi + STEP / 2, STEP)
         marked = self.marked((s >= lo - REACH) & (s <= hi + REACH))
-        agree, along = self.agreement(marked, offset, ts), s[marked]
-        on_object = self._on_objects(marked)[marked]
-        # (a box's overlap is a tent as wide at half its rise as the box is long)
-        found = [peak for kind, width in ((~on_object, MAX_WIDTH), (on_object, MAX_LENGTH))
-                 if (peak := _placed(ts, agree[:, kind], along[kind], width)) is not None]
+        kinds = [(self.agreement(marked, offset, ts), s[marked], MAX_WIDTH)]
+        if self.b_objects is not None and len(s):  # (a box's overlap: a tent as wide at half its rise as the box is long)
+            at = np.clip(self.b_object_at, s.min(), s.max())  # (the end windows take those held beyond)
+            mine = (at >= lo) & (at <= hi)
+            kinds.append((self.object_agreement(mine, offset, ts), self.b_objects[mine, 0], MAX_LENGTH))
+        found = [(*peak, k) for k, (agree, along, width) in enumerate(kinds)
+                 if (peak := _placed(ts, agree, along, width)) is not None]
         if not found:
             return float("nan"), float("nan")
         if len(found) == 2 and abs(found[0][0] - found[1][0]) > CONFLICT_SD * max(np.hypot(found[0][1], found[1][1]), STEP):
             return float("nan"), float("nan")
-        t, _, s_mark = min(found, key=lambda peak: peak[1])
-        return (s_mark, t) if lo <= s_mark <= hi else (float("nan"), float("nan"))
+        t, _, s_mark, kind = min(found, key=lambda peak: peak[1])
+        # an intensity mark beyond the window is the next window's; an object is this one's, where it lies
+        return (s_mark, t) if kind == 1 or lo <= s_mark <= hi else (float("nan"), float("nan"))
 
-    def alias_ratio(self, offsets: np.ndarray, lo: float, hi: float) -> tuple[float, float, dict]:
-        """How close the best alias along the track comes to the curve that moves run b's points
-        by ``offsets`` (n, 3, track frame), by the marks: like the geometric
-        :func:`railtraj.matching.piecewise.alias_ratio`, the misfit (share of marked points that
-        do not agree) at the curve over that of the best shift beyond the curve's peak, the
-        shift to it, and the profile (``points``: the marked points, ``source`` "marks"). Of
-        intensity marks and short objects, the kind whose share rises most above its median at
-        the curve is taken (as :meth:`place` places each kind on its own: run c's view from the
-        other track marked 350 points of the lining by chance, which flattened a box's profile)."""
+    def alias_ratio(self, curve, lo: float, hi: float) -> tuple[float, float, dict]:
+        """How close the best alias along the track comes to the curve of offsets ``curve``
+        (world points (k, 3) to the offsets (k, 3) that move run b's points there onto run
+        a's), by the marks: like the geometric :func:`railtraj.matching.piecewise.alias_ratio`,
+        the misfit (share of marked points that do not agree) at the curve over that of the
+        best shift beyond the curve's peak, the shift to it, and the profile (``points``: the
+        marked points, ``source`` "marks"). Of intensity marks and short objects, the kind whose
+        share rises most above its median at the curve is taken (as :meth:`place` places each
+        kind on its own: run c's view from the other track marked 350 points of the lining by
+        chance, which flattened a box's profile)."""
         ts = ALIAS_STEP * np.arange(np.floor(lo / ALIAS_STEP), np.ceil(hi / ALIAS_STEP) + 1)
         marked = self.marked(np.ones(len(self.b_coords), bool))
-        agree, on_object = self.agreement(marked, offsets, ts), self._on_objects(marked)[marked]
+        kinds = [self.agreement(marked, self._curve_at(curve, self.b_coords[marked]), ts)]
+        if self.b_objects is not None:
+            kinds.append(self.object_agreement(np.ones(len(self.b_objects), bool),
+                                               self._curve_at(curve, self.b_objects), ts))
         k0 = int(np.argmin(np.abs(ts)))
         # each kind on its own, as in place(): the one that rises most at the curve
-        kinds = [kind for kind in (~on_object, on_object) if kind.sum() >= MIN_MARKED] or [np.ones(len(on_object), bool)]
-        shares = [agree[:, kind].mean(axis=1) if kind.any() else np.zeros(len(ts)) for kind in kinds]
+        kinds = [agree for agree in kinds if agree.shape[1] >= MIN_MARKED] or [np.hstack(kinds)]
+        shares = [agree.mean(axis=1) if agree.shape[1] else np.zeros(len(ts)) for agree in kinds]
         best = max(range(len(kinds)), key=lambda i: shares[i][k0] - np.median(shares[i]))
         share = shares[best]
         profile = {"start": float(ts[0]), "step": ALIAS_STEP, "fitness": share.tolist(),
-                   "points": int(kinds[best].sum()), "source": "marks"}
+                   "points": int(kinds[best].shape[1]), "source": "marks"}
         floor = float(np.median(share))
         foot = _extent(share - floor, k0, 0.1 * (share[k0] - floor))[0] if share[k0] > floor else ts == ts[k0]
         if foot.all():
             return 0.0, 0.0, profile
         k = int(np.flatnonzero(~foot)[np.argmax(share[~foot])])
         return misfit_ratio(1.0 - share[k0], 1.0 - share[k]), float(ts[k]), profile
+
+    def _curve_at(self, curve, coords: np.ndarray) -> np.ndarray:
+        """``curve``'s offsets (track frame) at run b's points ``coords`` (track frame)."""
+        return curve(coords @ self.frame + self.origin) @ self.frame.T if len(coords) else np.zeros((0, 3))
+
+
+def held_objects(coords: np.ndarray, holds) -> tuple[np.ndarray, np.ndarray]:
+    """The points of the short objects a pair holds, whole, and each one's object's along-track
+    centre. ``coords``: (m, 3) run b's points on short objects (track frame), those around its
+    cloud included; ``holds``: whether the pair holds track-frame points (mask).
+
+    Points closer than :data:`OBJECT_GAP` are one object, held where its centre (mean point) is:
+    a box cut by a tile's edge is placed whole, with its points beyond the edge, by the one pair
+    whose run a's tile holds it, and by no other. (Its cut part alone against run a's whole box
+    fits wherever it lies on it: a plateau as long as the box, whose centre is not the box's;
+    mixed 72 moved a pair 18.7 cm.)"""
+    if not len(coords):
+        return coords, np.zeros(0)
+    pairs = cKDTree(coords).query_pairs(OBJECT_GAP, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(coords),) * 2)
+    n, label = connected_components(graph, directed=False)
+    count = np.bincount(label, minlength=n)
+    centre = np.column_stack([np.bincount(label, weights=coords[:, k], minlength=n) for k in range(3)]) / count[:, None]
+    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(lo, label, coords[:, 0])
+    np.maximum.at(hi, label, coords[:, 0])
+    keep = np.asarray(holds(centre), bool)[label]
+    return coords[keep], 0.5 * (lo + hi)[label[keep]]
+
+
+def _profile(pts: np.ndarray, ts: np.ndarray, agrees) -> np.ndarray:
+    """(len(ts), len(pts)) ``agrees(pts moved t along the track)`` for each ``t`` (all False
+    where ``agrees`` is None: the other run has nothing to agree with)."""
+    out = np.zeros((len(ts), len(pts)), bool)
+    if agrees is None or not len(pts):
+        return out
+    for k, t in enumerate(ts):  # up to 300 shifts, each one query of the marked points
+        out[k] = agrees(pts + np.array([t, 0.0, 0.0]))
+    return out
 
 
 class LazyMarks:

@@ -15,7 +15,9 @@ peak where its two runs' points overlap, as wide as the box.
 
 An end found outside the cloud's footprint is the tile's edge, not an object's (a surface cut by
 the tile's edge ends there, in one run and not the other); a box 0.5 m from the edge is still
-one. Periodic parts shorter than MAX_LENGTH (sleepers, ribs) end too; their windows have edges
+one. A box across the edge is seen whole in the points the pipeline reads :data:`CONTEXT_M`
+beyond the pair's box (``PointTile.context``), and is placed by the one pair whose run a's tile
+holds its centre (:func:`railtraj.matching.intensity.held_objects`). Periodic parts shorter than MAX_LENGTH (sleepers, ribs) end too; their windows have edges
 and never ask, and where a profile of marks has a peak per period it is refused like repeated
 marks (:func:`railtraj.matching.intensity.profile_peak`).
 """
@@ -32,6 +34,9 @@ MAX_LENGTH = 2.0
 MIN_LENGTH = 0.2
 #: step (m) of the moves along the track
 STEP = 0.1
+#: how far (m) beyond a tile pair's box its runs' points are read as context
+#: (``PointTile.context``): a box cut by the tile's edge is seen whole, and to end
+CONTEXT_M = MAX_LENGTH + 0.5
 
 
 def short_objects(xyz: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarray:

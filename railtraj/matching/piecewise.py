@@ -37,7 +37,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
 from railtraj.matching.consensus import alias_profile, misfit_ratio, profile_rivals, window_chord
-from railtraj.matching.intensity import LazyMarks
+from railtraj.matching.intensity import LazyMarks, Surroundings
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.refine import point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
@@ -553,6 +553,7 @@ def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
                   length: float = 5.0, information: np.ndarray | None = None, tree: cKDTree | None = None,
                   intensity: tuple[np.ndarray, np.ndarray] | None = None, objects: bool = False,
+                  around: Surroundings | None = None,
                   **window_options) -> Piecewise | None:
     """Fit the curve of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
 
@@ -560,7 +561,9 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     matrix near ``d_start`` (for the track direction; fitted here if None); ``tree`` a KD-tree
     on ``ref_xyz`` (built if None); ``intensity`` the two clouds' intensities, which place
     windows without edges where marks are (:func:`window_offsets`), as do short ``objects``
-    (:mod:`railtraj.matching.objects`). Returns None when no window could be placed.
+    (:mod:`railtraj.matching.objects`), told apart from a surface cut by the tile's edge by the
+    runs' points ``around`` ``ref_xyz`` and ``moving``. Returns None when no window
+    could be placed.
     """
     if information is None or not np.isfinite(information).all():
         information = point_to_plane(target, sample(moving, 20_000), d_start, iterations=3).information
@@ -572,7 +575,8 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     tree = reference_tree(ref_xyz) if tree is None else tree
     a_intensity, b_intensity = (None, None) if intensity is None else intensity
     marks = None if intensity is None and not objects else LazyMarks(
-        ref_xyz, a_intensity, moving, b_intensity, track_frame(axis), origin, window_options.get("tau", 0.05), objects)
+        ref_xyz, a_intensity, moving, b_intensity, track_frame(axis), origin, window_options.get("tau", 0.05), objects,
+        around)
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
@@ -639,7 +643,7 @@ def alias_ratio(target: PlaneTarget, moving: np.ndarray, fit: Piecewise, center:
     """
     if fit.on_marks and fit.marks is not None and len(fit.marks().b_coords) == len(moving):
         lo, hi = window_chord(fit.d_ref, fit.axis, center, window)
-        ratio, shift, profile = fit.marks().alias_ratio(fit.at(moving) @ track_frame(fit.axis).T, lo, hi)
+        ratio, shift, profile = fit.marks().alias_ratio(fit.at, lo, hi)
         return ratio, shift, {"axis": fit.axis.tolist(), **profile}
     pts = sample(moving, points, seed=2)
     moved = pts + fit.at(pts)

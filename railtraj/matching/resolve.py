@@ -23,6 +23,7 @@ from railtraj.matching.consensus import (
     failed,
     make_ties,
 )
+from railtraj.matching.intensity import Surroundings
 from railtraj.matching.piecewise import (
     Piecewise,
     alias_ratio,
@@ -43,6 +44,9 @@ from railtraj.matching.voting import Votes, find_peaks, slices
 MIN_KEYPOINT_TIES = 3
 #: m; a curve moved to its edge profile's peak may change its across and up by this much at most
 MAX_EDGE_MOVE_ACROSS = 0.02
+#: m; a curve whose along-track offset rests on marks placed this far along from where its
+#: windows were fitted is fitted again there
+MARKS_REFIT_M = 0.2
 
 Refiner = Callable[[PointTile, Keypoints, PointTile, Keypoints, TileOffset], TileOffset]
 
@@ -128,6 +132,13 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
 
 
+def _beyond(tile: PointTile, left_out: np.ndarray | None) -> np.ndarray:
+    """What lies around the points of ``tile`` that are kept: those ``left_out`` (a mask, or
+    None: none) and its context."""
+    parts = [tile.xyz[left_out] if left_out is not None else np.zeros((0, 3))]
+    return np.vstack(parts + ([] if tile.context is None else [tile.context]))
+
+
 def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: VoteSettings, info,
                         tree: cKDTree, few_votes: bool = False) -> TileOffset:
     """Refine as a curve of offsets along the track (:mod:`railtraj.matching.piecewise`), then
@@ -140,20 +151,23 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
 
-    def fit_from(start: np.ndarray):
+    def fit_from(start: np.ndarray, center: np.ndarray = votes.center):
         inside = target.inside(tile_b.xyz + start, 0.3)
         intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
             (tile_a.intensity, tile_b.intensity[inside])
+        around = Surroundings(_beyond(tile_a, None), _beyond(tile_b, ~inside),
+                              lambda xyz: target.inside(xyz + start, 0.0)) if s.objects else None
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
                             chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
-                            tau=s.fitness_radius, vote_window=(votes.center, votes.window))
+                            tau=s.fitness_radius, vote_window=(center, votes.window), around=around)
         if fit is None:
             return None, inside, 0.0, 0.0, {}
         rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
                                             s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
         return fit, inside, rival, shift, profile
 
-    fit, inside, rival, shift, profile = fit_from(chosen.fit.d)
+    start = chosen.fit.d
+    fit, inside, rival, shift, profile = fit_from(start)
     if fit is None:
         return failed(tile_a, tile_b, "degenerate", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
@@ -162,6 +176,15 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         moved = fit_from(fit.d_ref + shift * fit.axis)
         if moved[0] is not None:
             info["moved_to_alias"] = (moved[0].d_ref - fit.d_ref).tolist()
+            start = fit.d_ref + shift * fit.axis
+            fit, inside, rival, _, info["alias_profile"] = moved
+    if fit.on_marks and abs((fit.d_ref - start) @ fit.axis) > MARKS_REFIT_M:
+        # marks placed run b metres from where its windows were fitted: on a curve, and along an
+        # axis a degree off, their across and up lean there; fitted again where the marks put it
+        # (and the marks searched about it: the votes' window may end just beyond)
+        moved = fit_from(fit.d_ref, center=fit.d_ref)
+        if moved[0] is not None and moved[0].on_marks:
+            info["moved_to_marks"] = (moved[0].d_ref - fit.d_ref).tolist()
             fit, inside, rival, _, info["alias_profile"] = moved
     moved_to_edges = False
     if not (fit.windows[:, 5] > 0).any():  # no window found an along-track offset

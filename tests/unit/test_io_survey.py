@@ -19,6 +19,7 @@ from railtraj.io.survey import (
     open_survey,
     read_control,
     require_overlaps,
+    with_context,
 )
 from railtraj.io.trajectory_csv import write_trajectory_csv
 
@@ -218,3 +219,16 @@ def test_a_large_overlap_is_cut_into_parts_that_tile_it(survey_dir):
     assert np.isclose(np.prod((hi - lo)[:, :2], axis=1).sum(), np.prod((whole[0].overlap_max - whole[0].overlap_min)[:2]))
     kept = in_parts(whole, 50.0)  # within 1.2 x part_m: kept whole
     assert len(kept) == 1 and kept[0] is whole[0]
+
+
+def test_a_pair_reads_its_runs_tiles_near_its_box_as_context(survey_dir):
+    """Run a's tiles that come within the reach of the pair's box (its own, the next along the
+    x axis) are where its context is read; a tile 10 m beyond is not."""
+    s = open_survey(survey_dir)
+    run = type(s.runs["run-a"])
+    a = [_header([x, 0, 0], [x + 25, 25, 5], f"a{x}.laz") for x in (0, 25, 60)]
+    b = [_header([1, 0, 0], [26, 25, 5], "b.laz")]
+    fake = type(s)(survey_dir, {"a": run("a", survey_dir, survey_dir, a), "b": run("b", survey_dir, survey_dir, b)})
+    pairs = with_context(find_overlaps(fake), fake, reach=5.0)
+    first = next(p for p in pairs if p.tile_a is a[0])
+    assert first.context_a == (Path("a0.laz"), Path("a25.laz")) and first.context_b == (Path("b.laz"),)

@@ -84,3 +84,24 @@ def test_a_missing_tile_is_an_input_error(tmp_path):
 
     with pytest.raises(InputError, match="gone.laz"):
         TileCache(1.0).read(tmp_path / "gone.laz")
+
+
+def test_the_context_is_every_point_of_the_run_near_the_box_that_the_crop_does_not_hold(tmp_path, make_tile):
+    """A pair's box reaches 3 m past its tile's edge, where the next tile's points lie: they are
+    context, as are both tiles' points up to ``reach`` beyond the box; the crop's are not."""
+    paths = []
+    for k in range(3):
+        path = tmp_path / f"t{k}.laz"
+        write_tile(path, make_tile(n=5000, seed=k, origin=(25.0 * k, 0.0, 0.0), size=25.0, name=path.name))
+        paths.append(path)
+    everything = np.vstack([read_tile(p).xyz for p in paths])
+    lo, hi = np.array([-3.0, -3.0, -np.inf]), np.array([28.0, 28.0, np.inf])
+    tile = TileCache(1.0).read_with_context(paths[0], "a", tuple(paths[:2]), (lo, hi), 2.5)
+    in_box = ((everything >= lo) & (everything <= hi)).all(axis=1)
+    near = ((everything >= lo - [2.5, 2.5, 0]) & (everything <= hi + [2.5, 2.5, 0])).all(axis=1)
+    own = np.isin(everything[:, 0], read_tile(paths[0]).xyz[:, 0])
+    want = everything[near & ~(own & in_box)]
+    got = tile.context
+    assert len(tile) == (own & in_box).sum() and len(got) == len(want) > 0
+    assert (got[:, 0] < 28.0).any()  # the next tile's points inside the box are there
+    np.testing.assert_array_equal(np.sort(got[:, 0]), np.sort(want[:, 0]))

@@ -64,11 +64,10 @@ def test_repeated_marks_are_refused_as_aliases():
 
 def test_alias_ratio_is_low_on_the_true_shift_and_high_one_mark_off():
     marks = pair([(8.0, 1.2, 0.35, 1.7), (9.5, 1.2, 0.35, 1.7)], 0.5)
-    n = len(marks.b_coords)
-    right, _, profile = marks.alias_ratio(np.tile([0.5, 0.0, 0.0], (n, 1)), -1.2, 1.2)
+    right, _, profile = marks.alias_ratio(lambda xyz: np.tile([0.5, 0.0, 0.0], (len(xyz), 1)), -1.2, 1.2)
     assert right < 0.8 and profile["source"] == "marks" and profile["points"] > 0
     # one mark spacing off, the other mark fits: an alias as good as the curve
-    wrong, shift, _ = marks.alias_ratio(np.tile([0.5 - 1.5, 0.0, 0.0], (n, 1)), -2.0, 2.0)
+    wrong, shift, _ = marks.alias_ratio(lambda xyz: np.tile([0.5 - 1.5, 0.0, 0.0], (len(xyz), 1)), -2.0, 2.0)
     assert wrong > 0.8 and abs(shift - 1.5) < 0.1
 
 

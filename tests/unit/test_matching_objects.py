@@ -3,8 +3,11 @@
 import numpy as np
 import pytest
 
-from railtraj.matching.intensity import IntensityMarks
+from railtraj.data import Keypoints, PointTile
+from railtraj.matching.intensity import IntensityMarks, Surroundings
 from railtraj.matching.objects import short_objects
+from railtraj.matching.synthetic import HALF_WIDTH, _box, tunnel_xyz
+from railtraj.plugins import registry
 
 LENGTH, RADIUS, DENSITY = 20.0, 3.0, 400.0
 BOX = (8.0, 8.7, 2.55, 0.5, 1.2)  # along from, to; its front face's distance across; from, to up
@@ -98,7 +101,7 @@ def test_a_box_is_placed_among_many_chance_intensity_marks_of_one_run():
     assert abs(t - 0.43) < 0.02
     assert abs(s - (8.35 - 0.43)) < 0.3
     # the pair's along-track profile is the box's too: it peaks at the curve, most of it agreeing
-    _, _, profile = marks.alias_ratio(np.tile([0.43, 0.0, 0.0], (len(b), 1)), -1.5, 1.5)
+    _, _, profile = marks.alias_ratio(lambda xyz: np.tile([0.43, 0.0, 0.0], (len(xyz), 1)), -1.5, 1.5)
     ts = profile["start"] + profile["step"] * np.arange(len(profile["fitness"]))
     assert abs(ts[np.argmax(profile["fitness"])]) < 0.06 and max(profile["fitness"]) > 0.8
 
@@ -119,3 +122,110 @@ def test_a_box_and_a_painted_mark_that_disagree_place_nothing(disc_shift, placed
                                  radius=0.05, objects=True)
     t = marks.place(5.0, 10.0, np.zeros(3), -1.5, 1.5)[1]
     assert (abs(t - 0.43) < 0.02) if placed else np.isnan(t)
+
+
+def test_a_box_across_the_tile_edge_is_seen_whole_in_the_context():
+    """Run a's tile ends across the box (run b's, 0.43 m further on, lies inside): alone, run a's
+    half box ends at the cloud's edge and is no object; with the points beyond the edge
+    (``PointTile.context``) it is the box, and places run b's."""
+    rng = np.random.default_rng(8)
+    a_all, _ = lining(rng)
+    b_all, _ = lining(rng, shift=0.43)
+    edge = 8.35
+    a, b = a_all[a_all[:, 0] < edge], b_all[b_all[:, 0] < edge]
+    around = (a_all[(a_all[:, 0] >= edge) & (a_all[:, 0] < edge + 2.5)],
+              b_all[(b_all[:, 0] >= edge) & (b_all[:, 0] < edge + 2.5)])
+    alone = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True)
+    assert np.isnan(alone.place(3.0, edge, np.zeros(3), -1.5, 1.5)[1])
+    seen = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
+                                around=Surroundings(*around, lambda xyz: xyz[:, 0] < edge))
+    assert abs(seen.place(3.0, edge, np.zeros(3), -1.5, 1.5)[1] - 0.43) < 0.02
+
+
+def _cut(xyz, lo, hi, reach=2.5):
+    """The points of ``xyz`` from ``lo`` to ``hi`` along x (a tile) and those within ``reach``
+    beyond (its context)."""
+    x = xyz[:, 0]
+    return xyz[(x >= lo) & (x < hi)], xyz[((x >= lo - reach) & (x < lo)) | ((x >= hi) & (x < hi + reach))]
+
+
+@pytest.mark.parametrize("edge", [7.8, 8.15])
+def test_a_box_of_run_b_across_the_tile_edge_is_placed_whole_by_the_tile_that_holds_most_of_it(edge):
+    """Run b's box (7.57-8.27 m) is cut by the edge between two tiles: the tile holding most of
+    it places it with the part beyond its edge, to the points' spacing; the other places
+    nothing. Its cut part alone against run a's whole box would fit anywhere along it."""
+    rng = np.random.default_rng(9)
+    a_all, _ = lining(rng)
+    b_all, _ = lining(rng, shift=0.43)
+    placed = []
+    for lo, hi in ((0.0, edge), (edge, LENGTH)):
+        (a, a_around), (b, b_around) = _cut(a_all, lo, hi), _cut(b_all, lo, hi)
+        holds = lambda xyz, lo=lo, hi=hi: (xyz[:, 0] >= lo) & (xyz[:, 0] < hi)  # noqa: E731
+        marks = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
+                                     around=Surroundings(a_around, b_around, holds))
+        placed.append(marks.place(lo, hi, np.zeros(3), -1.5, 1.5)[1])
+    most = 0 if 8.27 - edge < edge - 7.57 else 1
+    assert abs(placed[most] - 0.43) < 0.02 and np.isnan(placed[1 - most])
+
+
+def test_a_box_in_run_bs_next_tile_is_placed_by_the_pair_whose_run_a_tile_holds_it():
+    """Run b is 1 m behind: its box (9.0-9.7 m) lies in its next tile, beyond its cloud's end
+    (8.9 m), but moved by the start offset it lies in run a's tile. The last window places it."""
+    rng = np.random.default_rng(10)
+    a_all, _ = lining(rng)
+    b_all, _ = lining(rng, shift=-1.0)
+    (a, a_around), (b, b_around) = _cut(a_all, 0.0, 8.9), _cut(b_all, 0.0, 8.9)
+    start = np.array([-1.0, 0.0, 0.0])
+    holds = lambda xyz: (xyz[:, 0] + start[0] >= 0.0) & (xyz[:, 0] + start[0] < 8.9)  # noqa: E731
+    marks = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
+                                 around=Surroundings(a_around, b_around, holds))
+    s, t = marks.place(4.0, 8.9, start, -1.5, 1.5)
+    assert abs(t) < 0.02 and abs(s - 9.35) < 0.3  # where the box is in run b, beyond the window
+    mine = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
+                                around=Surroundings(a_around, b_around, lambda xyz: xyz[:, 0] < 8.9))
+    assert np.isnan(mine.place(4.0, 8.9, start, -1.5, 1.5)[1])  # held by run b's next tile's pair
+
+
+CURVE_RADIUS, LAG = 550.0, 0.3  # m: a curve of the demo's; run b 0.3 m behind along it
+
+
+def _bend(xyz):
+    """x along a circle of :data:`CURVE_RADIUS` (turning left), y across, z up."""
+    r = CURVE_RADIUS - xyz[:, 1]
+    return np.column_stack([r * np.sin(xyz[:, 0] / CURVE_RADIUS), CURVE_RADIUS - r * np.cos(xyz[:, 0] / CURVE_RADIUS),
+                            xyz[:, 2]])
+
+
+def _unbend(p):
+    return np.column_stack([CURVE_RADIUS * np.arctan2(p[:, 0], CURVE_RADIUS - p[:, 1]),
+                            CURVE_RADIUS - np.hypot(p[:, 0], CURVE_RADIUS - p[:, 1]), p[:, 2]])
+
+
+def _curved_tube(seed, lag, run):
+    """25 m of a featureless tube on the curve with one box on its wall, ``lag`` m behind."""
+    rng = np.random.default_rng(seed)
+    xyz = np.vstack([tunnel_xyz(-12.5, 12.5, density=300, seed=seed, features=False),
+                     _box(rng, 300, (7.0, HALF_WIDTH - 0.3, 1.0), (7.6, HALF_WIDTH, 1.7))])
+    t = 1000.0 + xyz[:, 0] / 10.0
+    order = np.argsort(t)
+    return PointTile(_bend(xyz[order] - [lag, 0.0, 0.0]) + rng.normal(0, 0.01, xyz.shape), t[order], run_id=run,
+                     name=run)
+
+
+@pytest.mark.parametrize("votes_off", [2.0, -2.5])
+def test_a_curve_placed_by_a_box_far_from_its_start_is_fitted_again_there(votes_off):
+    """The votes put run b metres along the curve from where it is; the box places the curve's
+    along-track offset there. Its windows, fitted where the votes put run b, lean across the
+    track on a curve (6 mm here; 4.6 cm on mixed 5, where the fitted axis was also 0.9 degrees
+    off): the pair is fitted again where the box puts it, to a millimetre or two."""
+    a, b = _curved_tube(0, 0.0, "A"), _curved_tube(1, LAG, "B")
+    truth = lambda p: _bend(_unbend(p) + [LAG, 0.0, 0.0]) - p  # noqa: E731  (p_a = p_b + d)
+    pick = np.random.default_rng(5).choice(len(a), 60, replace=False)  # keypoints voting for the wrong place
+    wrong = truth(np.zeros((1, 3)))[0] + [votes_off, 0.0, 0.0]
+    off = registry().create("matcher", "pair_voting", {"max_misalignment": 3.0}).match(
+        a, Keypoints(a.xyz[pick], a.gps_time[pick]), b, Keypoints(a.xyz[pick] - wrong, a.gps_time[pick]), None)
+    pw = off.info["piecewise"]
+    err = off.d - truth(np.array([pw["ref_point"]]))[0]
+    axis = np.asarray(pw["axis"])
+    assert "moved_to_marks" in off.info and (np.asarray(pw["windows"])[:, 5] == 2).any()
+    assert abs(err @ axis) < 0.01 and abs(err @ [-axis[1], axis[0], 0.0]) < 0.003 and abs(err[2]) < 0.003
