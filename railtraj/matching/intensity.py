@@ -113,7 +113,7 @@ class Surroundings:
 
     a: np.ndarray  # (k, 3) run a's points around its tile (``PointTile.context``)
     b: np.ndarray  # (m, 3) run b's points around its cloud: the rest of its tile, and its context
-    b_holds: Callable[[np.ndarray], np.ndarray]  # mask: world points of run b the pair holds (in run a's tile)
+    a_holds: Callable[[np.ndarray], np.ndarray]  # mask: world points in run a's tile
 
 
 @dataclass
@@ -130,8 +130,8 @@ class IntensityMarks:
     radius: float  # m: how close run a's point must be
     frame: np.ndarray  # rows along, across, up (world directions)
     origin: np.ndarray  # world point of the frame's origin
-    a_objects: cKDTree | None = None  # run a's points on short objects (:mod:`railtraj.matching.objects`)
-    b_objects: np.ndarray | None = None  # (m, 3) run b's points on the short objects the pair holds (:func:`held_objects`)
+    a_objects: cKDTree | None = None  # run a's points on the short objects its tile holds (:func:`held_objects`)
+    b_objects: np.ndarray | None = None  # (m, 3) run b's points on short objects, whole (:func:`held_objects`)
     b_object_at: np.ndarray | None = None  # (m,) along-track centre of each one's object
 
     @classmethod
@@ -148,11 +148,10 @@ class IntensityMarks:
         out = cls(cKDTree(a[keep]), a_resid[keep], a_sd, b, b_resid, b_sd, radius, frame, origin)
         if objects:  # continuity along the track is looked for within twice the fitness radius
             a_all, b_all = (a_xyz, b_xyz) if around is None else (np.vstack([a_xyz, around.a]), np.vstack([b_xyz, around.b]))
-            out.a_objects = cKDTree((a_all[short_objects(a_all, frame[0], 2 * radius)] - origin) @ frame.T)
-            on = b_all[short_objects(b_all, frame[0], 2 * radius)]
-            holds = around.b_holds if around is not None else lambda xyz: np.ones(len(xyz), bool)
-            out.b_objects, out.b_object_at = held_objects((on - origin) @ frame.T,
-                                                           lambda c: holds(c @ frame + origin))
+            holds = around.a_holds if around is not None else lambda xyz: np.ones(len(xyz), bool)
+            a_on, b_on = (xyz[short_objects(xyz, frame[0], 2 * radius)] for xyz in (a_all, b_all))
+            out.a_objects = cKDTree(held_objects((a_on - origin) @ frame.T, lambda c: holds(c @ frame + origin))[0])
+            out.b_objects, out.b_object_at = held_objects((b_on - origin) @ frame.T, lambda c: np.ones(len(c), bool))
         return out
 
     def marked(self, inside: np.ndarray) -> np.ndarray:
@@ -190,8 +189,8 @@ class IntensityMarks:
 
         Marks are whole: the window reaches :data:`REACH` beyond its ends (a disc cut in half by
         the window's end is matched against a whole one, and its peak leans), and takes the
-        objects whose centre it holds (the first and last window those the pair holds beyond
-        run b's cloud: a box in run b's next tile that lies in run a's), all of their points.
+        objects whose centre it holds (the first and last window those beyond run b's cloud: a
+        box in run b's next tile whose view in run a lies in run a's), all of their points.
         ``s`` is the median position of the marked points that agree at the peak, for drift
         changes the offset along the window (18 mm/m is 4.5 cm at its end); an intensity mark
         there that lies beyond the window is left to the next one.
@@ -257,15 +256,17 @@ class IntensityMarks:
 
 
 def held_objects(coords: np.ndarray, holds) -> tuple[np.ndarray, np.ndarray]:
-    """The points of the short objects a pair holds, whole, and each one's object's along-track
-    centre. ``coords``: (m, 3) run b's points on short objects (track frame), those around its
-    cloud included; ``holds``: whether the pair holds track-frame points (mask).
+    """The points of the short objects a tile holds, whole, and each one's object's along-track
+    centre. ``coords``: (m, 3) a run's points on short objects (track frame), those around its
+    tile included; ``holds``: whether the tile holds track-frame points (mask).
 
-    Points closer than :data:`OBJECT_GAP` are one object, held where its centre (mean point) is:
-    a box cut by a tile's edge is placed whole, with its points beyond the edge, by the one pair
-    whose run a's tile holds it, and by no other. (Its cut part alone against run a's whole box
-    fits wherever it lies on it: a plateau as long as the box, whose centre is not the box's;
-    mixed 72 moved a pair 18.7 cm.)"""
+    Points closer than :data:`OBJECT_GAP` are one object, held where its centre (mean point) is.
+    Run a's objects are those its tile holds, each whole: a box across the tile's edge is matched
+    by the one pair whose run a's tile holds its centre, whichever of run b's tiles and wherever
+    its start puts run b's view of it. (Holding run b's by where its start put them, two
+    neighbouring pairs started on different aliases of a featureless section both left a box
+    out; and a cut part of a box alone against a whole one fits wherever it lies on it: a
+    plateau as long as the box, whose centre is not the box's, that moved a pair 18.7 cm.)"""
     if not len(coords):
         return coords, np.zeros(0)
     pairs = cKDTree(coords).query_pairs(OBJECT_GAP, output_type="ndarray")

@@ -17,9 +17,10 @@ An end found outside the cloud's footprint is the tile's edge, not an object's (
 the tile's edge ends there, in one run and not the other); a box 0.5 m from the edge is still
 one. A box across the edge is seen whole in the points the pipeline reads :data:`CONTEXT_M`
 beyond the pair's box (``PointTile.context``), and is placed by the one pair whose run a's tile
-holds its centre (:func:`railtraj.matching.intensity.held_objects`). Periodic parts shorter than MAX_LENGTH (sleepers, ribs) end too; their windows have edges
-and never ask, and where a profile of marks has a peak per period it is refused like repeated
-marks (:func:`railtraj.matching.intensity.profile_peak`).
+holds the centre of run a's view of it (:func:`railtraj.matching.intensity.held_objects`).
+Periodic parts shorter than MAX_LENGTH (sleepers, ribs) end too; their windows have edges and
+never ask, and where a profile of marks has a peak per period it is refused like repeated marks
+(:func:`railtraj.matching.intensity.profile_peak`).
 """
 
 from __future__ import annotations

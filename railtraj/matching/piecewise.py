@@ -55,6 +55,8 @@ MARKS_SEARCH = 1.5
 #: gives no offset. On 1 704 windows of 12 simulated surveys started 0-3 cm off the truth, 6
 #: kept 1 408, 63 of them more than 3 cm off; the plain distance's 3 kept 1 471, 127 off
 MIN_VALLEY = 6.0
+#: how far (m) beyond a cloud's end a time is extrapolated at the train's speed (:func:`reference_times`)
+TIME_REACH = 3.0
 #: variance (m^2) of the along-track offset of a curve none of whose windows found one
 UNKNOWN_VAR = 1e4
 #: along-track windows a curve needs before anything checks it: a line through two fits them
@@ -523,14 +525,23 @@ def window_ties(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np
 
 def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np.ndarray,
                 half: float) -> np.ndarray:
-    """Median time of the points within ``half`` metres along the track of each of ``s_values``
-    (NaN where there is none)."""
+    """Median time of the points within ``half`` metres along the track of each of ``s_values``.
+
+    A position beyond the cloud (a box across the tile's edge, seen whole in its context and
+    placed where it lies) takes the time of the line through the times of the last
+    :data:`TIME_REACH` metres of the cloud, up to that far beyond its end (else NaN): the
+    overlap's median time, the fallback, lay 12 m away, 4.1 cm of drift off on mixed 72."""
     s = (xyz - fit.origin) @ fit.axis
     out = np.full(len(s_values), np.nan)
     for k, sv in enumerate(s_values):  # a handful of positions
         near = np.abs(s - sv) <= half
         if near.any():
             out[k] = np.median(times[near])
+        elif len(s) and abs(sv - np.clip(sv, s.min(), s.max())) <= TIME_REACH:
+            end = np.abs(s - np.clip(sv, s.min(), s.max())) <= TIME_REACH
+            if np.ptp(s[end]) > half:  # the train's speed from the run's own times there
+                slope, intercept = np.polyfit(s[end], times[end], 1)
+                out[k] = intercept + slope * sv
     return out
 
 

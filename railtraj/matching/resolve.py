@@ -156,7 +156,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
             (tile_a.intensity, tile_b.intensity[inside])
         around = Surroundings(_beyond(tile_a, None), _beyond(tile_b, ~inside),
-                              lambda xyz: target.inside(xyz + start, 0.0)) if s.objects else None
+                              lambda xyz: target.inside(xyz, 0.0)) if s.objects else None
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
                             chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
                             tau=s.fitness_radius, vote_window=(center, votes.window), around=around)

@@ -126,12 +126,12 @@ def test_a_box_and_a_painted_mark_that_disagree_place_nothing(disc_shift, placed
 
 def test_a_box_across_the_tile_edge_is_seen_whole_in_the_context():
     """Run a's tile ends across the box (run b's, 0.43 m further on, lies inside): alone, run a's
-    half box ends at the cloud's edge and is no object; with the points beyond the edge
+    cut box ends at the cloud's edge and is no object; with the points beyond the edge
     (``PointTile.context``) it is the box, and places run b's."""
     rng = np.random.default_rng(8)
     a_all, _ = lining(rng)
     b_all, _ = lining(rng, shift=0.43)
-    edge = 8.35
+    edge = 8.4  # run a's box: 8.0-8.7 m
     a, b = a_all[a_all[:, 0] < edge], b_all[b_all[:, 0] < edge]
     around = (a_all[(a_all[:, 0] >= edge) & (a_all[:, 0] < edge + 2.5)],
               b_all[(b_all[:, 0] >= edge) & (b_all[:, 0] < edge + 2.5)])
@@ -149,11 +149,12 @@ def _cut(xyz, lo, hi, reach=2.5):
     return xyz[(x >= lo) & (x < hi)], xyz[((x >= lo - reach) & (x < lo)) | ((x >= hi) & (x < hi + reach))]
 
 
-@pytest.mark.parametrize("edge", [7.8, 8.15])
-def test_a_box_of_run_b_across_the_tile_edge_is_placed_whole_by_the_tile_that_holds_most_of_it(edge):
-    """Run b's box (7.57-8.27 m) is cut by the edge between two tiles: the tile holding most of
-    it places it with the part beyond its edge, to the points' spacing; the other places
-    nothing. Its cut part alone against run a's whole box would fit anywhere along it."""
+@pytest.mark.parametrize("edge", [7.8, 8.15, 8.5])
+def test_a_box_across_the_tile_edge_is_placed_whole_by_the_tile_that_holds_run_as_view_of_it(edge):
+    """Run b's box (7.57-8.27 m) and run a's (8.0-8.7 m, its centre at 8.35 m) are cut by the
+    edge between two tiles: the pair whose run a's tile holds run a's box's centre places it,
+    whole, with the parts beyond its edges, to the points' spacing; the other places nothing.
+    A cut part alone against a whole box would fit anywhere along it."""
     rng = np.random.default_rng(9)
     a_all, _ = lining(rng)
     b_all, _ = lining(rng, shift=0.43)
@@ -164,26 +165,27 @@ def test_a_box_of_run_b_across_the_tile_edge_is_placed_whole_by_the_tile_that_ho
         marks = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
                                      around=Surroundings(a_around, b_around, holds))
         placed.append(marks.place(lo, hi, np.zeros(3), -1.5, 1.5)[1])
-    most = 0 if 8.27 - edge < edge - 7.57 else 1
-    assert abs(placed[most] - 0.43) < 0.02 and np.isnan(placed[1 - most])
+    held = 0 if 8.35 < edge else 1
+    assert abs(placed[held] - 0.43) < 0.02 and np.isnan(placed[1 - held])
 
 
 def test_a_box_in_run_bs_next_tile_is_placed_by_the_pair_whose_run_a_tile_holds_it():
     """Run b is 1 m behind: its box (9.0-9.7 m) lies in its next tile, beyond its cloud's end
-    (8.9 m), but moved by the start offset it lies in run a's tile. The last window places it."""
+    (8.9 m), but run a's (8.0-8.7 m) lies in run a's tile. The last window places it; the pair
+    of the next tile, which does not hold run a's box, does not."""
     rng = np.random.default_rng(10)
     a_all, _ = lining(rng)
     b_all, _ = lining(rng, shift=-1.0)
     (a, a_around), (b, b_around) = _cut(a_all, 0.0, 8.9), _cut(b_all, 0.0, 8.9)
     start = np.array([-1.0, 0.0, 0.0])
-    holds = lambda xyz: (xyz[:, 0] + start[0] >= 0.0) & (xyz[:, 0] + start[0] < 8.9)  # noqa: E731
     marks = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
-                                 around=Surroundings(a_around, b_around, holds))
+                                 around=Surroundings(a_around, b_around, lambda xyz: xyz[:, 0] < 8.9))
     s, t = marks.place(4.0, 8.9, start, -1.5, 1.5)
     assert abs(t) < 0.02 and abs(s - 9.35) < 0.3  # where the box is in run b, beyond the window
-    mine = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
-                                around=Surroundings(a_around, b_around, lambda xyz: xyz[:, 0] < 8.9))
-    assert np.isnan(mine.place(4.0, 8.9, start, -1.5, 1.5)[1])  # held by run b's next tile's pair
+    (a, a_around), (b, b_around) = _cut(a_all, 8.9, LENGTH), _cut(b_all, 8.9, LENGTH)
+    nxt = IntensityMarks.build(a, None, b, None, np.eye(3), np.zeros(3), radius=0.05, objects=True,
+                               around=Surroundings(a_around, b_around, lambda xyz: xyz[:, 0] >= 8.9))
+    assert np.isnan(nxt.place(8.9, 14.0, start, -1.5, 1.5)[1])
 
 
 CURVE_RADIUS, LAG = 550.0, 0.3  # m: a curve of the demo's; run b 0.3 m behind along it

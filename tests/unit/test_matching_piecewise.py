@@ -23,6 +23,7 @@ from railtraj.matching.piecewise import (
     fit_curve,
     piecewise_fit,
     reference_position,
+    reference_times,
     reference_tree,
     surface_normals,
     track_frame,
@@ -126,6 +127,21 @@ def test_window_ties_carry_the_true_offset_where_and_when_they_are(stretched):
     np.testing.assert_allclose(xyz_a - xyz_b, true_d[k], atol=0.005)
     # both runs pass each tie's place at the same time in this synthetic pair (5 m/s, 0.2 s per m)
     np.testing.assert_allclose(time_a, time_b, atol=0.1)
+
+
+@pytest.mark.parametrize(("gap", "found"), [(1.7, True), (4.0, False)])
+def test_a_reference_point_beyond_the_cloud_takes_the_time_at_the_trains_speed(stretched, gap, found):
+    """A box seen whole in the context is placed where it lies, up to metres beyond run b's
+    cloud: its time is the line through the cloud's last metres of times, up to TIME_REACH
+    (3 m) beyond; farther, none."""
+    a, b, true_d = stretched
+    target = build_target(a.xyz)
+    inside = target.inside(b.xyz + true_d.mean(axis=0), 0.3)
+    fit = piecewise_fit(target, a.xyz, b.xyz[inside], true_d.mean(axis=0), length=5.0)
+    whole = reference_times(fit, a.xyz, a.gps_time, b.xyz, b.gps_time)[1]
+    short = ((b.xyz - fit.origin) @ fit.axis) < fit.s_ref - gap  # run b's cloud ends gap m before
+    cut = reference_times(fit, a.xyz, a.gps_time, b.xyz[short], b.gps_time[short])[1]
+    assert abs(cut - whole) < 0.02 if found else np.isnan(cut)  # 5 m/s: 0.02 s is 10 cm
 
 
 @pytest.mark.parametrize("across", [False, True])
