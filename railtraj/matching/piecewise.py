@@ -537,8 +537,10 @@ def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np
         near = np.abs(s - sv) <= half
         if near.any():
             out[k] = np.median(times[near])
-        elif len(s) and abs(sv - np.clip(sv, s.min(), s.max())) <= TIME_REACH:
-            end = np.abs(s - np.clip(sv, s.min(), s.max())) <= TIME_REACH
+            continue
+        nearest_end = float(np.clip(sv, s.min(), s.max())) if len(s) else np.nan
+        if abs(sv - nearest_end) <= TIME_REACH:
+            end = np.abs(s - nearest_end) <= TIME_REACH
             if np.ptp(s[end]) > half:  # the train's speed from the run's own times there
                 slope, intercept = np.polyfit(s[end], times[end], 1)
                 out[k] = intercept + slope * sv

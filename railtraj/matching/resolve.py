@@ -151,11 +151,13 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
 
+    a_around = _beyond(tile_a, None) if s.objects else None  # (the same for every start)
+
     def fit_from(start: np.ndarray, center: np.ndarray = votes.center):
         inside = target.inside(tile_b.xyz + start, 0.3)
         intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
             (tile_a.intensity, tile_b.intensity[inside])
-        around = Surroundings(_beyond(tile_a, None), _beyond(tile_b, ~inside),
+        around = Surroundings(a_around, _beyond(tile_b, ~inside),
                               lambda xyz: target.inside(xyz, 0.0)) if s.objects else None
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
                             chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
