@@ -87,6 +87,22 @@ def test_aliases_are_resolved_jointly_from_the_portals():
     assert all(o.cov[0, 0] >= 0.05**2 / 12 for o in moved)
 
 
+def test_a_pair_moved_to_another_alias_is_observed_where_run_a_saw_run_bs_structure():
+    """The matcher times run a where its windows matched, one alias off; the shift to the true
+    alias is the spacing of run a's own structure, so the moved offset holds where run a saw run
+    b's structure: at the true place's time, not the alias's (portal_trap 304: 3.3 cm along,
+    4.2 cm across at the alias's time)."""
+    aliases = {2: 3.0, 4: -1.5, 7: -3.0}
+    offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
+    t0 = trajs["run_a"].time[0]
+    offsets = [replace(o, info=dict(o.info, time_a=t0 + (s_k + aliases.get(k, 0.0)) / 10.0))
+               for k, (o, s_k) in enumerate(zip(offsets, s, strict=True))]
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    for k in aliases:
+        assert out[k].status == "coarse"
+        assert out[k].info["time_a"] == pytest.approx(t0 + s[k] / 10.0, abs=0.01)
+
+
 def test_an_ok_pair_on_an_alias_is_never_kept():
     offsets, trajs, s = _chain({4: 3.0}, statuses={k: "ok" for k in range(12)})
     out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
