@@ -7,6 +7,8 @@ least spread and it passes through their mean. Fitting on raw points rather than
 centroids matters when the reference is noisy: a sparse voxel in the noise tail has a centroid
 off the surface, but the mean of its block lies on it (unweighted centroids biased the
 vertical by 9 mm). Correspondences are found on the voxel centroids (nearest within a radius).
+A block too sparse for a plane (a far wall, a slow scanner) takes the plane of the block twice
+its size, so the voxel follows the point spacing where the 5 cm one has too few points.
 """
 
 from __future__ import annotations
