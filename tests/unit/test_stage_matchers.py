@@ -224,3 +224,15 @@ def test_a_pair_with_too_few_votes_is_checked_densely_but_never_ok(replica):
 def test_min_check_votes_below_one_is_refused():
     with pytest.raises(ConfigError, match="min_check_votes=0: give 1 or more"):
         registry().create("matcher", "pair_voting", {"min_check_votes": 0})
+
+
+def test_a_pair_no_window_of_which_could_be_fitted_is_degenerate_and_unused(replica):
+    """Too few of run b's points for any window (1 500 each): the dense check's rigid fit alone
+    is no measurement: its formal sd (0-1 mm) drew two runs 5-11 cm apart at portal_trap 1's
+    start. The pair is ``degenerate`` without a covariance, so no stage uses it."""
+    a, b, truth = replica
+    ka, kb = _detect("iss", PRESETS["tunnel"], a, b)
+    sparse = b.subset(np.random.default_rng(0).choice(len(b), 4_000, replace=False))
+    off = registry().create("matcher", "pair_voting", {}).match(a, ka, sparse, kb)
+    assert off.status == "degenerate" and "piecewise" not in off.info, off.status
+    assert not np.isfinite(off.cov).any() and off.info["unusable"]
