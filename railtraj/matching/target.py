@@ -128,20 +128,24 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
     normal_var = tilt_variance(n, evals)
     sparse = np.flatnonzero(n < min_points)
     if len(sparse):
-        found, c_mean, c_normal, c_var = _coarse_planes(xyz, grid, sparse, 2 * voxel, min_points, max_curvature)
+        found, c_mean, c_normal, c_var = _coarse_planes(xyz, grid, sparse, min_points, max_curvature)
         taken = sparse[found]
         mean[taken], normal[taken], normal_var[taken], weight[taken] = c_mean, c_normal, c_var, 1.0
     return PlaneTarget(grid, mean, normal, weight, normal_var, cKDTree(grid.xyz), lo, hi)
 
 
-def _coarse_planes(xyz: np.ndarray, grid: VoxelGrid, voxels: np.ndarray, size: float, min_points: int,
+def _coarse_planes(xyz: np.ndarray, grid: VoxelGrid, voxels: np.ndarray, min_points: int,
                    max_curvature: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Planes at voxel ``size`` for the ``voxels`` of ``grid``: which found a planar coarse block
-    (mask over ``voxels``), and those blocks' mean, normal and tilt variance."""
+    """Planes of the blocks twice the size for the ``voxels`` of ``grid``: which found a planar
+    one (mask over ``voxels``), and those blocks' mean, normal and tilt variance.
+
+    The coarse grid's corners are every other corner of ``grid`` (twice its voxel, its origin
+    one coarse voxel back), so each voxel's centroid lies in the coarse voxel holding its points.
+    """
+    size = 2 * grid.size
     origin = grid.origin - size
     coarse = voxelize(xyz, size, origin)
-    wanted = pack(voxel_coords(grid.xyz[voxels], size, origin))
-    slot = np.minimum(np.searchsorted(coarse.keys, wanted), len(coarse.keys) - 1)  # every wanted one exists
+    slot = np.searchsorted(coarse.keys, pack(voxel_coords(grid.xyz[voxels], size, origin)))
     n, mean, cov = block_covariance(xyz, coarse)
     n, mean, cov = n[slot], mean[slot], cov[slot]
     evals, normal = smallest_eigen(cov)
