@@ -318,7 +318,8 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    axis: np.ndarray, s: np.ndarray, length: float, *, points: int = 8_000,
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0,
-                   marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None) -> np.ndarray:
+                   marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None,
+                   across_target: PlaneTarget | None = None) -> np.ndarray:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``; windows without enough points are left out.
     Each window's profile is its points' distance across run a's surface (:func:`along_costs`
@@ -346,7 +347,10 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     there is nothing to fit (always trimming cost a dense survey a pair it had).
     ``tau`` is the matcher's fitness radius, which follows the scan's profile spacing; each
     window's fitness is counted within it too (at a fixed 5 cm, a 16 cm profile gap left every
-    window of a fast run below 0.5 and its pair ``degenerate``)."""
+    window of a fast run below 0.5 and its pair ``degenerate``). ``across_target``
+    (:func:`railtraj.matching.target.filled_target`: sparse far walls with planes) fits each
+    window's across and up again from there, its along-track offset held (in it, tilted coarse
+    planes drew a window's along-track offset onto a rib 1.5 m away)."""
     edges = _window_edges(s, length, min_windows, min_length)
     if len(s):  # stray points may stretch the grid: the core's grid if it fills more windows
         core = _window_edges(s[(s >= np.quantile(s, 0.005)) & (s <= np.quantile(s, 0.995))], length,
@@ -371,6 +375,9 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             return None
         pts = sample(moving[inside], points, seed=seed)
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
+        if across_target is not None and np.isfinite(fit.d).all():  # across and up again, sparse walls too
+            fit = point_to_plane(across_target, pts, fit.d, iterations=10, max_dist=max(0.2, 2 * tau),
+                                 fitness_radius=tau, fixed=axis)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         kept = pts[stays_on_tile(target, pts + fit.d, axis, ts, tau)]

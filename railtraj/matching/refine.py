@@ -90,12 +90,13 @@ def _covariance(info: np.ndarray, sigma: float, max_sd: float) -> np.ndarray:
 def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
                    translation_only: bool = True, iterations: int = 20, max_dist: float = 0.25,
                    kernel: float = 0.05, tol: float = 1e-4, fitness_radius: float = 0.05,
-                   max_sd: float = 3.0) -> Fit:
+                   max_sd: float = 3.0, fixed: np.ndarray | None = None) -> Fit:
     """Move ``moving`` onto ``target`` starting from translation ``d0`` (Huber-weighted GN).
 
     ``max_dist`` bounds the correspondence search, ``kernel`` is the Huber threshold on the
     point-to-plane residual, ``tol`` the step size (m, rad) at which iteration stops, ``max_sd``
     caps the reported sd of unconstrained directions. ``iterations=0`` only evaluates at ``d0``.
+    ``fixed`` (a unit vector, translation only): the fit does not move along it.
     With rotation (``translation_only=False``) the covariance is that of the translation with
     the rotation held at its estimate.
     """
@@ -106,6 +107,8 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
     sigma, n_used, converged, it, prev = np.nan, 0, False, 0, None
     info, dist = np.full((3, 3), np.nan), np.full(len(moving), np.inf)
     nearest = target.tracker(max(max_dist, fitness_radius))
+    # the directions the fit moves in: all, or those across ``fixed``
+    free = np.eye(npar) if fixed is None else np.linalg.svd(np.eye(3) - np.outer(fixed, fixed))[0][:, :2]
     for it in range(iterations + 1):
         q = (moving - center) @ rot.T + center + d
         ok, idx, n, r, w, dist = _linearize(target, q, nearest, kernel)
@@ -115,10 +118,10 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
         sigma = float(np.sqrt((w * r**2).sum() / max(w.sum() - npar, 1.0)))
         info = translation_information(target, idx, n, w)
         J = n if translation_only else np.hstack([np.cross(q[ok] - center - d, n), n])
-        H = (J * w[:, None]).T @ J
+        H = free.T @ (J * w[:, None]).T @ J @ free
         if it == iterations or converged or np.linalg.cond(H) > 1e12:
             break  # the last pass only linearizes at the final estimate (info, sigma, fitness)
-        step = -np.linalg.solve(H, (J * w[:, None]).T @ r)
+        step = -free @ np.linalg.solve(H, free.T @ (J * w[:, None]).T @ r)
         if prev is not None and step @ prev < 0:
             step = 0.5 * step  # correspondences flip between neighbouring voxels: damp the cycle
         prev = step

@@ -36,7 +36,7 @@ from railtraj.matching.piecewise import (
     window_ties,
 )
 from railtraj.matching.refine import directions, sample
-from railtraj.matching.target import cached_target
+from railtraj.matching.target import cached_filled_target, cached_target
 from railtraj.matching.threads import in_background
 from railtraj.matching.voting import Votes, find_peaks, slices
 
@@ -150,6 +150,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     ``ok`` here: its alias is left to the chain along the track."""
     t0 = time.perf_counter()
     target = cached_target(tile_a.xyz, s.target_voxel)
+    across_target = cached_filled_target(tile_a.xyz, s.target_voxel)
 
     a_around = _beyond(tile_a, None) if s.objects else None  # (the same for every start)
 
@@ -161,7 +162,8 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
                               lambda xyz: target.inside(xyz, 0.0)) if s.objects else None
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
                             chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
-                            tau=s.fitness_radius, vote_window=(center, votes.window), around=around)
+                            tau=s.fitness_radius, vote_window=(center, votes.window), around=around,
+                            across_target=across_target)
         if fit is None:
             return None, inside, 0.0, 0.0, {}
         rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,

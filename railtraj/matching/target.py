@@ -7,13 +7,14 @@ least spread and it passes through their mean. Fitting on raw points rather than
 centroids matters when the reference is noisy: a sparse voxel in the noise tail has a centroid
 off the surface, but the mean of its block lies on it (unweighted centroids biased the
 vertical by 9 mm). Correspondences are found on the voxel centroids (nearest within a radius).
-A block too sparse for a plane (a far wall, a slow scanner) takes the plane of the block twice
-its size, so the voxel follows the point spacing where the 5 cm one has too few points.
+
+A block too sparse for a plane (a far wall, a sparse scanner) has none; :func:`filled_target`
+gives it the plane of the block twice its size, for the across-and-up fits of a pair's windows.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -22,7 +23,14 @@ from railtraj.data import extent
 from railtraj.matching.memo import ArrayMemo
 from railtraj.matching.neighbours import smallest_eigen
 from railtraj.matching.threads import query_workers
-from railtraj.matching.voxel import VoxelGrid, block_covariance, pack, voxel_coords, voxelize
+from railtraj.matching.voxel import (
+    VoxelGrid,
+    block_covariance,
+    neighbour_sums,
+    pack,
+    voxel_coords,
+    voxelize,
+)
 
 
 @dataclass(frozen=True)
@@ -113,10 +121,6 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
     With 2 cm noise a flat 15 cm block already has a variation of ~0.095 and an edge ~0.14, so
     the threshold is 0.15; at 0.10 most planar blocks were dropped and along-track accuracy fell
     from <1 mm to ~5 mm on a dense simulated tile.
-
-    A block too sparse for a plane takes its plane from the block twice its size
-    (:func:`_coarse_planes`), where that one is planar: a scanner's far wall holds a point per
-    profile line per 15 cm block and would otherwise drop out of the fit.
     """
     xyz = np.asarray(xyz, float)
     lo, hi = extent(xyz)
@@ -126,12 +130,32 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
     curvature = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12)
     weight = ((n >= min_points) & (curvature <= max_curvature)).astype(float)
     normal_var = tilt_variance(n, evals)
-    sparse = np.flatnonzero(n < min_points)
-    if len(sparse):
-        found, c_mean, c_normal, c_var = _coarse_planes(xyz, grid, sparse, min_points, max_curvature)
-        taken = sparse[found]
-        mean[taken], normal[taken], normal_var[taken], weight[taken] = c_mean, c_normal, c_var, 1.0
     return PlaneTarget(grid, mean, normal, weight, normal_var, cKDTree(grid.xyz), lo, hi)
+
+
+def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = 6,
+                  max_curvature: float = 0.15) -> PlaneTarget:
+    """``target`` (built on ``xyz``) with each block too sparse for a plane given the plane of
+    the block twice its size, where that one is planar.
+
+    A sparse scanner's far wall holds a point or two per profile line in a 15 cm block: no
+    plane. At a tile's corner, where the near wall is outside the tile, across then rested on
+    rails and ceiling details the runs see from opposite sides: a pair's windows 4-7 cm off
+    across (mixed 72, 350 points per profile; 45 % of run a's voxels without a plane), within 3
+    mm with these planes. Only the windows' across-and-up fits use them: in the vote checks and
+    along-track profiles, flat far walls that fit every alias made a 50 m-tile survey's pairs
+    ambiguous (0.012 -> 0.67 m).
+    """
+    block_points = neighbour_sums(target.grid, target.grid.count[:, None].astype(float))[:, 0]
+    sparse = np.flatnonzero(block_points < min_points)  # (not a corner: its coarse block is one too)
+    if not len(sparse):
+        return target
+    found, mean, normal, var = _coarse_planes(xyz, target.grid, sparse, min_points, max_curvature)
+    taken = sparse[found]
+    anchor, normals, weight, normal_var = (target.anchor.copy(), target.normal.copy(), target.weight.copy(),
+                                           target.normal_var.copy())
+    anchor[taken], normals[taken], weight[taken], normal_var[taken] = mean, normal, 1.0, var
+    return replace(target, anchor=anchor, normal=normals, weight=weight, normal_var=normal_var)
 
 
 def _coarse_planes(xyz: np.ndarray, grid: VoxelGrid, voxels: np.ndarray, min_points: int,
@@ -169,6 +193,7 @@ def tilt_variance(n: np.ndarray, evals: np.ndarray) -> np.ndarray:
 
 
 _targets = ArrayMemo(build_target)
+_filled = ArrayMemo(lambda xyz, voxel: filled_target(xyz, _targets(xyz, voxel)))
 
 
 def cached_target(xyz: np.ndarray, voxel: float = 0.05) -> PlaneTarget:
@@ -179,3 +204,8 @@ def cached_target(xyz: np.ndarray, voxel: float = 0.05) -> PlaneTarget:
     tile is the reference of up to three tile pairs; a finished tile's target goes with its array.
     """
     return _targets(xyz, voxel)
+
+
+def cached_filled_target(xyz: np.ndarray, voxel: float = 0.05) -> PlaneTarget:
+    """:func:`filled_target` of :func:`cached_target`, remembered the same way."""
+    return _filled(xyz, voxel)

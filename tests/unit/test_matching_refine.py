@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from railtraj.matching.refine import crop, directions, point_to_plane, sample
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
-from railtraj.matching.target import build_target
+from railtraj.matching.target import build_target, filled_target
 
 SHIFT = np.array([0.5, 1.5, 0.1])  # tunnel frame: along, across, up
 
@@ -127,8 +127,11 @@ def _sparse_wall_room(seed: int) -> np.ndarray:
 
 def test_a_wall_too_sparse_for_15_cm_planes_still_fixes_the_offset_across():
     """At a tile corner the near wall is outside the tile, and a sparse scanner's far wall
-    had no plane: across rested on rails and ceiling details, 4-7 cm off (mixed 72)."""
-    target = build_target(_sparse_wall_room(0))
+    had no plane: across rested on rails and ceiling details, 4-7 cm off (mixed 72). The
+    filled target gives it the planes of the blocks twice the size."""
+    room = _sparse_wall_room(0)
+    assert (build_target(room).weight[np.abs(build_target(room).grid.xyz[:, 1] - 2.0) < 0.05] > 0).mean() < 0.3
+    target = filled_target(room, build_target(room))
     wall = np.abs(target.grid.xyz[:, 1] - 2.0) < 0.05
     assert (target.weight[wall] > 0).mean() > 0.9
     assert np.median(np.abs(target.normal[wall & (target.weight > 0), 1])) > 0.95
@@ -136,3 +139,13 @@ def test_a_wall_too_sparse_for_15_cm_planes_still_fixes_the_offset_across():
     b = _sparse_wall_room(1) - truth
     fit = point_to_plane(target, b[np.abs(b[:, 0] - 10) > 0.3], truth + [0.02, 0.04, 0.0])
     assert abs(fit.d[1] - truth[1]) < 0.003, (fit.d - truth) * 1000
+
+
+def test_a_fit_held_along_a_direction_moves_only_across_it(ribbed):
+    target, b, truth = ribbed
+    axis = rotation_z(30) @ [1.0, 0.0, 0.0]
+    start = truth + [0.03, -0.02, 0.02]
+    fit = _fit(target, b, start, fixed=axis)
+    assert (fit.d - start) @ axis == pytest.approx(0.0, abs=1e-9)
+    across = (fit.d - truth) - ((fit.d - truth) @ axis) * axis
+    assert np.abs(across).max() < 0.002, across * 1000
