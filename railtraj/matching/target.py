@@ -112,8 +112,13 @@ class NearestTracker:
         return idx, dist
 
 
-def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
-                 max_curvature: float = 0.15) -> PlaneTarget:
+#: raw points a plane block needs, and the largest surface variation it may have (build_target)
+MIN_BLOCK_POINTS = 6
+MAX_CURVATURE = 0.15
+
+
+def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = MIN_BLOCK_POINTS,
+                 max_curvature: float = MAX_CURVATURE) -> PlaneTarget:
     """Grid ``xyz`` at ``voxel`` and fit a plane to the raw points around every voxel.
 
     Blocks with fewer than ``min_points`` points or a surface variation lambda_min / sum above
@@ -133,8 +138,8 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = 6,
     return PlaneTarget(grid, mean, normal, weight, normal_var, cKDTree(grid.xyz), lo, hi)
 
 
-def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = 6,
-                  max_curvature: float = 0.15) -> PlaneTarget:
+def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = MIN_BLOCK_POINTS,
+                  max_curvature: float = MAX_CURVATURE) -> PlaneTarget:
     """``target`` (built on ``xyz``) with each block too sparse for a plane given the plane of
     the block twice its size, where that one is planar.
 
@@ -147,7 +152,7 @@ def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = 6,
     ambiguous (0.012 -> 0.67 m).
     """
     block_points = neighbour_sums(target.grid, target.grid.count[:, None].astype(float))[:, 0]
-    sparse = np.flatnonzero(block_points < min_points)  # (not a corner: its coarse block is one too)
+    sparse = np.flatnonzero(block_points < min_points)  # blocks dropped for their shape stay dropped
     if not len(sparse):
         return target
     found, mean, normal, var = _coarse_planes(xyz, target.grid, sparse, min_points, max_curvature)
