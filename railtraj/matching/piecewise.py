@@ -375,7 +375,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
             return None
         pts = sample(moving[inside], points, seed=seed)
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
-        if across_target is not None and np.isfinite(fit.d).all():  # across and up again, sparse walls too
+        if across_target is not None and across_target is not target and np.isfinite(fit.d).all():  # sparse walls too
             fit = point_to_plane(across_target, pts, fit.d, iterations=10, max_dist=max(0.2, 2 * tau),
                                  fitness_radius=tau, fixed=axis)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):

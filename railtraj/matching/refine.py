@@ -118,10 +118,11 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
         sigma = float(np.sqrt((w * r**2).sum() / max(w.sum() - npar, 1.0)))
         info = translation_information(target, idx, n, w)
         J = n if translation_only else np.hstack([np.cross(q[ok] - center - d, n), n])
-        H = free.T @ (J * w[:, None]).T @ J @ free
+        Jw = (J * w[:, None]).T
+        H = free.T @ (Jw @ J) @ free  # (the small matrices last: nothing per point twice)
         if it == iterations or converged or np.linalg.cond(H) > 1e12:
             break  # the last pass only linearizes at the final estimate (info, sigma, fitness)
-        step = -free @ np.linalg.solve(H, free.T @ (J * w[:, None]).T @ r)
+        step = -free @ np.linalg.solve(H, free.T @ (Jw @ r))
         if prev is not None and step @ prev < 0:
             step = 0.5 * step  # correspondences flip between neighbouring voxels: damp the cycle
         prev = step

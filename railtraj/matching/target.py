@@ -131,11 +131,17 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = MIN_BLO
     lo, hi = extent(xyz)
     grid = voxelize(xyz, voxel)
     n, mean, cov = block_covariance(xyz, grid)
+    planar, normal, normal_var = _block_planes(n, cov, min_points, max_curvature)
+    return PlaneTarget(grid, mean, normal, planar.astype(float), normal_var, cKDTree(grid.xyz), lo, hi)
+
+
+def _block_planes(n: np.ndarray, cov: np.ndarray, min_points: int,
+                  max_curvature: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each block (``n`` points, covariance ``cov``) is a plane, its normal and the
+    normal's tilt variance."""
     evals, normal = smallest_eigen(cov)
     curvature = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12)
-    weight = ((n >= min_points) & (curvature <= max_curvature)).astype(float)
-    normal_var = tilt_variance(n, evals)
-    return PlaneTarget(grid, mean, normal, weight, normal_var, cKDTree(grid.xyz), lo, hi)
+    return (n >= min_points) & (curvature <= max_curvature), normal, tilt_variance(n, evals)
 
 
 def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = MIN_BLOCK_POINTS,
@@ -176,10 +182,8 @@ def _coarse_planes(xyz: np.ndarray, grid: VoxelGrid, voxels: np.ndarray, min_poi
     coarse = voxelize(xyz, size, origin)
     slot = np.searchsorted(coarse.keys, pack(voxel_coords(grid.xyz[voxels], size, origin)))
     n, mean, cov = block_covariance(xyz, coarse)
-    n, mean, cov = n[slot], mean[slot], cov[slot]
-    evals, normal = smallest_eigen(cov)
-    found = (n >= min_points) & (evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12) <= max_curvature)
-    return found, mean[found], normal[found], tilt_variance(n, evals)[found]
+    found, normal, normal_var = _block_planes(n[slot], cov[slot], min_points, max_curvature)
+    return found, mean[slot][found], normal[found], normal_var[found]
 
 
 def tilt_variance(n: np.ndarray, evals: np.ndarray) -> np.ndarray:
