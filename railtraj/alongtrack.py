@@ -21,7 +21,9 @@ runner-up, and an alias one period away that its profile shows no peak for, by `
 the profile is measured about the matcher's own choice. That holds for an alias the profile shows no
 peak for too: a matcher's ``ok`` is no proof (on a sparse scanner an ``ok`` pair sat 3 m off), so
 the nearest such alias, a multiple of that period away, competes at 3 sigma. Fixed pairs
-anchor the next round.
+anchor the next round. An anchor is no proof either: a pair none of whose aliases lies near the
+prediction releases the trajectories' anchor there (GNSS multipath biases a run along the track
+while it reports centimetres), and the pair is predicted again from the rest of the chain.
 
 What cannot be fixed stays ``ambiguous`` and is used across the track and in height only, with
 the drift rate its windows measure where they span enough (``info["drift_rate"]``). This
@@ -58,6 +60,7 @@ class AlongTrackOptions:
     rate_walk: float = 0.001        # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
+    anchor_gate: float = 4.0        # a pair none of whose aliases lies within this many sd of the prediction releases its anchor
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
     prior_correlation: float = 100.0  # m over which the trajectories' error counts as one
@@ -579,7 +582,11 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
       other's (predicted to 0.21 m), placed right to 5 mm, put the runs 0.3-0.48 m apart where
       they had been 0.2 m (inter-run RMS 0.17 -> 0.24 m, the input's 0.18). In the demo's
       circular section a box 134 and 48 m from fixed pairs (predicted to 0.135 m) took the
-      inter-run max from 11.8 to 7.4 cm.
+      inter-run max from 11.8 to 7.4 cm. Two such marks within ``rate_radius`` that agree are
+      fixed together however far the next evidence is (:func:`_marks_that_agree`).
+
+    Before any pair is fixed in a round, a pair that has no alias within ``anchor_gate`` sd of
+    its prediction releases its anchor (:func:`_contradicted`), and the chain predicts again.
 
     Fixed pairs then anchor the next round, until no pair can be fixed. ``walks`` is the drift
     rate's wander per step (:func:`_rate_walks`). Returns, per pair, the
@@ -589,9 +596,14 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
     n = len(chain)
     fixed = np.full(n, np.nan)  # along offset of the fixed candidate
     result: list[tuple[float, float, str]] = [(0.0, 0.0, "ambiguous")] * n
+    anchor_var = _anchor_variance(chain, options)
     while True:
-        mu, var = _smooth(chain, fixed, options, walks)
-        newly = []
+        mu, var = _smooth(chain, fixed, options, walks, anchor_var)
+        released = np.isfinite(anchor_var) & _contradicted(chain, fixed, mu, var, options)
+        if released.any():  # predicted again without them, before anything is fixed on them
+            anchor_var = np.where(released, np.inf, anchor_var)
+            continue
+        newly, far_marks = [], []
         for i, p in enumerate(chain):
             if np.isfinite(fixed[i]):
                 continue
@@ -608,8 +620,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             unseen = (p.u[best] - k * period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
-            if p.lone_mark:  # its correction spreads over the gaps either side: only where they are short
-                near = near and var[i] <= (LONE_MARK_PREDICTION * options.min_period) ** 2
+            # a lone mark's correction spreads over the gaps either side: alone, only where they are short
+            far_mark = p.lone_mark and var[i] > (LONE_MARK_PREDICTION * options.min_period) ** 2
             # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that;
             # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not
@@ -618,12 +630,38 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             result[i] = (float(p.shift[best]), margin, "ambiguous")
             movable = p.movable is None or bool(p.movable[best])
             if near and not crowded and movable and margin >= options.min_margin:
-                newly.append((i, best, margin))
+                (far_marks if far_mark else newly).append((i, best, margin))
+        if not newly:
+            newly = _marks_that_agree(chain, fixed, far_marks, options, walks, anchor_var)
         if not newly:
             return result, mu, var
         for i, best, margin in newly:
             fixed[i] = chain[i].u[best]
             result[i] = (float(chain[i].shift[best]), margin, "resolved")
+
+
+def _marks_that_agree(chain: list[Pair], fixed: np.ndarray, far_marks: list[tuple[int, int, float]],
+                      options: AlongTrackOptions, walks: np.ndarray, anchor_var: np.ndarray
+                      ) -> list[tuple[int, int, float]]:
+    """Two lone marks (boxes) within ``rate_radius`` of each other, each predicted too vaguely to
+    be fixed alone (``far_marks``: its index, candidate and margin), that agree: with the first
+    fixed, the chain predicts the second to ``LONE_MARK_PREDICTION`` times ``min_period`` and its
+    candidate within 3 sd. Together they fix the offset and its rate there, which one mark cannot:
+    fixed alone, one box 350 m from the next evidence spread its correction over a gap in which the
+    drift turned (feature_poor 0). In a held-out mixed tunnel 1.3 times as long, two boxes 25 m
+    apart, 200 m from other evidence, were predicted to 0.21-0.27 m and each placed within 1.5 cm;
+    left unfixed, runs b and c sat 0.19 m apart there."""
+    gate = (LONE_MARK_PREDICTION * options.min_period) ** 2
+    for i, best, margin in far_marks:  # a handful per run pair
+        trial = fixed.copy()
+        trial[i] = chain[i].u[best]
+        mu, var = _smooth(chain, trial, options, walks, anchor_var)
+        for j, other, other_margin in far_marks:
+            q = chain[j]
+            if j != i and abs(q.s - chain[i].s) <= options.rate_radius and var[j] <= gate and (
+                    (q.u[other] - mu[j]) ** 2 <= 9.0 * (var[j] + q.sd**2)):
+                return [(i, best, margin), (j, other, other_margin)]
+    return []
 
 
 def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
@@ -706,8 +744,48 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
     return out
 
 
+def _contradicted(chain: list[Pair], fixed: np.ndarray, mu: np.ndarray, var: np.ndarray,
+                  options: AlongTrackOptions) -> np.ndarray:
+    """Per pair, whether it is unfixed, precise (``max_pair_sd``) and has no alias within
+    ``anchor_gate`` sd of the prediction: neither a candidate its profile shows nor one a
+    multiple of its period from its best. Its along-track offset is one of its aliases, so where
+    none is near the prediction is wrong, and near a portal that means the anchor: GNSS that
+    claims the runs agree to centimetres while multipath biases one of them by decimetres. A bias
+    across the track the sd check sees before the chains and widens; one along the track only the
+    chain can see. On a held-out survey a run's GNSS sat 0.35 m off along the track at a portal:
+    the chain, fixed to 7 mm from the tunnel's interior, was held there by its anchors, left the
+    portal's three pairs unfixed (each pair's own candidate right to 1-2 cm, the nearest 4-8 sd
+    from the prediction), and the adjustment kept the run on its bias claiming 1.4 cm (31 sd)."""
+    out = np.zeros(len(chain), bool)
+    for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
+        if np.isfinite(fixed[i]) or p.sd > options.max_pair_sd or p.lone_mark:
+            continue
+        best = p.u[np.argmin(np.abs(p.u - mu[i]))]
+        period = p.period or options.min_period
+        nearest_unseen = best + period * np.round((mu[i] - best) / period)
+        miss = min(abs(best - mu[i]), abs(nearest_unseen - mu[i]))
+        out[i] = miss**2 > options.anchor_gate**2 * (var[i] + p.sd**2)
+    return out
+
+
+def _anchor_variance(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
+    """Per pair, the variance with which the trajectories anchor its along-track offset at 0
+    (``inf`` where they do not). The trajectories anchor the offset only where they are sure of
+    it (GNSS: the portals, their sd at most ``anchor_sd``). Deeper in, their error is one drift
+    seen at every pair, which no inflation counts once: in a 200 m tube whose offset rose to
+    0.64 m (prior sd 0.23-0.44 m) it held the prediction 0.2 m, 2.4 sd, towards zero, and three
+    pairs went unfixed. And the smoother's error is one error over ``prior_correlation``
+    metres: where the pairs are closer than that, it counts once there."""
+    s = np.array([p.s for p in chain])
+    gaps = np.abs(np.diff(s))
+    gap = np.minimum(np.append(gaps, np.inf), np.append(np.inf, gaps))
+    inflate = np.where(np.isfinite(gap), np.maximum(1.0, options.prior_correlation / np.maximum(gap, 1.0)), 1.0)
+    prior_var = np.array([p.prior_var for p in chain])
+    return np.where(prior_var <= options.anchor_sd**2, prior_var * inflate, np.inf)
+
+
 def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
-            walks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            walks: np.ndarray, anchor_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother).
 
     The state is the offset and its rate (per metre of run b's travel); the rate wanders as a
@@ -736,17 +814,10 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
             xp[i] = F @ xf[i - 1]
             pp[i] = F @ pf[i - 1] @ F.T + q[i] * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
         x, P = xp[i].copy(), pp[i].copy()
-        # the smoother's error is one error over prior_correlation metres: count it once there
-        gap = min(abs(p.s - chain[i - 1].s) if i else np.inf, abs(chain[i + 1].s - p.s) if i < n - 1 else np.inf)
-        inflate = max(1.0, options.prior_correlation / max(gap, 1.0)) if np.isfinite(gap) else 1.0
         rate = p.rate if p.rate_trusted or np.isfinite(fixed[i]) else np.nan
-        # the trajectories anchor the offset only where they are sure of it (GNSS: the portals).
-        # Deeper in, their error is one drift seen at every pair, which no inflation counts once:
-        # in a 200 m tube whose offset rose to 0.64 m (prior sd 0.23-0.44 m) it held the
-        # prediction 0.2 m, 2.4 sd, towards zero, and three pairs went unfixed
-        prior = 0.0 if p.prior_var <= options.anchor_sd**2 else np.nan
+        prior = 0.0 if np.isfinite(anchor_var[i]) else np.nan
         rate_var = p.rate_var or options.rate_sd**2
-        for row, z, r in ((1, rate, rate_var), (0, prior, p.prior_var * inflate), (0, fixed[i], p.sd**2)):
+        for row, z, r in ((1, rate, rate_var), (0, prior, anchor_var[i]), (0, fixed[i], p.sd**2)):
             if not np.isfinite(z):
                 continue
             s = P[row, row] + r

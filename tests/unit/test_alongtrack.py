@@ -519,7 +519,8 @@ def test_a_run_whose_gnss_is_biased_at_its_portal_does_not_anchor_the_chain():
     offsets, trajs, s = _chain({}, statuses={k: "ok" for k in range(14)}, bias=bias, first=10.0)
     truth = np.array([_true_along(np.array([s_k]))[0] + bias(s_k)[0] for s_k in s])
     near_portal = [1, 2, 3]  # 35-85 m: the bias 0.2-0.45 m along
-    as_reported, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    # (held by its anchors: without releasing those its pairs contradict, below)
+    as_reported, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(anchor_gate=np.inf))
     assert all(as_reported[k].status == "ambiguous" for k in near_portal)
     checked = check_reported_sd(trajs, offsets, SdCheckOptions(along=False))
     assert set(checked.summary["runs"]) == {"run_a", "run_b"}  # two runs: both are blamed
@@ -528,6 +529,27 @@ def test_a_run_whose_gnss_is_biased_at_its_portal_does_not_anchor_the_chain():
     for found in (as_reported, out):
         sure = [k for k, o in enumerate(found) if o.status in ("ok", "coarse")]
         np.testing.assert_allclose([found[k].d[0] for k in sure], truth[sure], atol=0.01)
+
+
+@pytest.mark.parametrize(("anchor_gate", "fixed"), [(4.0, True), (np.inf, False)])
+def test_pairs_that_contradict_a_portals_anchor_release_it(monkeypatch, anchor_gate, fixed):
+    """Multipath puts one run's GNSS 0.35 m off along the track over its open-sky approach and
+    the first 100 m inside, while it reports 1.5-2 cm, so the chain's anchors there say 0. The
+    bias is along the track only: the sd check before the chains (across and up) sees nothing.
+    The first three pairs' candidates (two of them on another alias) all lie 0.35 m, 8 sd, from
+    what the anchors predict: they release them, are predicted from the rest of the chain, and
+    are fixed on the truth. Held by their anchors they stay ambiguous."""
+    from railtraj.sd_check import SdCheckOptions, check_reported_sd
+
+    base = _true_along
+    biased = lambda s: base(s) + 0.35 * np.clip((150.0 - np.asarray(s, float)) / 100.0, 0.0, 1.0)  # noqa: E731
+    monkeypatch.setattr(sys.modules[__name__], "_true_along", biased)
+    offsets, trajs, s = _chain({1: 0.6, 2: -0.6}, statuses={k: "ok" for k in range(3, 14)}, first=10.0)
+    assert not check_reported_sd(trajs, offsets, SdCheckOptions(along=False)).widening
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(anchor_gate=anchor_gate))
+    assert all((o.status in ("ok", "coarse")) == fixed for o in out[:3]), [o.status for o in out[:3]]
+    sure = [k for k, o in enumerate(out) if o.status in ("ok", "coarse")]
+    np.testing.assert_allclose([out[k].d[0] for k in sure], biased(s[sure]), atol=0.01)
 
 
 def test_aliases_only_the_edge_profile_shows_are_resolved():
@@ -708,22 +730,23 @@ def test_a_flat_topped_alias_is_placed_where_the_edge_profile_peaks_within_it():
         assert out[7].cov[0, 0] == pytest.approx(0.008**2 + 0.25**2 / 12.0)
 
 
-def _lone_box(ok: tuple[int, ...], lone: int) -> tuple[list[TileOffset], dict[str, Trajectory], np.ndarray]:
-    """A chain with ok pairs at ``ok``, no along-track evidence elsewhere (a plain tube) but one
-    pair resting on a box: one window placed by marks, whose profile (a tent at the windows' fit,
-    searched over 6 m) shows nothing else."""
+def _lone_box(ok: tuple[int, ...], *lone: int) -> tuple[list[TileOffset], dict[str, Trajectory], np.ndarray]:
+    """A chain with ok pairs at ``ok``, no along-track evidence elsewhere (a plain tube) but the
+    pairs at ``lone`` each resting on a box: one window placed by marks, whose profile (a tent at
+    the windows' fit, searched over 6 m) shows nothing else."""
     offsets, trajs, s = _chain({}, statuses={k: "ok" for k in ok})
     for k in set(range(len(s))) - set(ok):
         flat = dict(offsets[k].info["alias_profile"], fitness=[0.9] * len(offsets[k].info["alias_profile"]["fitness"]))
         offsets[k] = replace(offsets[k], info=dict(offsets[k].info, alias_profile=flat))
     ts = -2.0 + 0.05 * np.arange(120)
     tent = 0.1 + 0.3 * np.clip(1.0 - np.abs(ts) / 0.5, 0.0, None)
-    o = offsets[lone]
-    pw = dict(o.info["piecewise"], windows=[[0.0, 0, 0, 0, 1, 2]], fit_cov=(np.diag([0.02, 0.003, 0.003]) ** 2).tolist())
-    profile = {"axis": [1.0, 0.0, 0.0], "start": -2.0, "step": 0.05, "fitness": tent.tolist(), "points": 400,
-               "source": "marks"}
-    d = np.array([_true_along(s[lone:lone + 1])[0], *o.d[1:]])
-    offsets[lone] = replace(o, d=d, status="degenerate", info=dict(o.info, piecewise=pw, alias_profile=profile))
+    for k in lone:
+        o = offsets[k]
+        pw = dict(o.info["piecewise"], windows=[[0.0, 0, 0, 0, 1, 2]], fit_cov=(np.diag([0.02, 0.003, 0.003]) ** 2).tolist())
+        profile = {"axis": [1.0, 0.0, 0.0], "start": -2.0, "step": 0.05, "fitness": tent.tolist(), "points": 400,
+                   "source": "marks"}
+        d = np.array([_true_along(s[k:k + 1])[0], *o.d[1:]])
+        offsets[k] = replace(o, d=d, status="degenerate", info=dict(o.info, piecewise=pw, alias_profile=profile))
     return offsets, trajs, s
 
 
@@ -742,3 +765,17 @@ def test_a_lone_box_is_fixed_only_where_the_chain_predicts_it_closely(lone, fixe
         assert np.sqrt(out[lone].cov[0, 0]) >= 0.03  # MARKS_PAIR_SD: one window placed by marks
     else:
         assert not np.sqrt(out[lone].cov[0, 0]) < 1.0  # not along the track (on one window: not at all)
+
+
+@pytest.mark.parametrize(("boxes", "rate_radius", "fixed"), [((6, 7), 50.0, True), ((5, 6), 50.0, True),
+                                                         ((6, 7), 20.0, False)])
+def test_two_lone_boxes_that_agree_are_fixed_where_one_would_not_be(boxes, rate_radius, fixed):
+    """Two boxes 25 m apart in the middle of the 200 m gap, each predicted to 0.2 m: too vaguely
+    to be fixed alone (the test above), but each, fixed, predicts the other to centimetres and
+    its box lies there, so both are fixed on the truth. Further apart than ``rate_radius``
+    neither is."""
+    offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), *boxes)
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(rate_radius=rate_radius))
+    assert all((out[k].status == "coarse") == fixed for k in boxes), [out[k].status for k in boxes]
+    for k in boxes:
+        assert not fixed or abs(out[k].d[0] - _true_along(s[k:k + 1])[0]) < 0.01

@@ -97,6 +97,17 @@ def test_with_two_runs_both_are_blamed():
     assert set(check_reported_sd(trajs, offsets).summary["runs"]) == {"run_a", "run_b"}
 
 
+def test_a_biased_run_met_only_by_the_reference_is_blamed_alone():
+    """The global pipeline pairs every run with the reference only. A run whose GNSS is biased
+    then disagrees with the reference alone, and the reference with it alone; but the reference
+    agrees with the third run there, so the biased run is blamed and the reference is not.
+    Counting disagreements only, both were."""
+    trajs, offsets, _ = _survey(runs=("run_b", "run_a", "run_c"))  # run a biased, run b the reference
+    offsets = [o for o in offsets if o.run_a == "run_b"]
+    summary = check_reported_sd(trajs, offsets).summary
+    assert set(summary["runs"]) == {"run_a"} and summary["runs"]["run_a"]["against"] == ["run_b"]
+
+
 def test_runs_that_agree_within_their_sd_are_left_alone():
     trajs, offsets, ties = _survey(biased=False)
     checked = check_reported_sd(trajs, offsets)
