@@ -552,6 +552,25 @@ def test_pairs_that_contradict_a_portals_anchor_release_it(monkeypatch, anchor_g
     np.testing.assert_allclose([out[k].d[0] for k in sure], biased(s[sure]), atol=0.01)
 
 
+@pytest.mark.parametrize(("released_walk", "anchor_gate", "fixed"), [(2.0, 4.0, True), (1.0, 4.0, False),
+                                                                  (2.0, np.inf, False)])
+def test_beside_a_released_anchor_the_rate_may_bend_as_a_gnss_bias_does(monkeypatch, released_walk, anchor_gate, fixed):
+    """A multipath bump: 0.35 m along the track at 35 m, gone within 50 m either side, where the
+    runs report GNSS. The pair at its peak (moved off its alias 0.6 m away) releases its anchor;
+    predicted with the drift's wander from its neighbours, which miss the bump, it still is not
+    fixed. With the wander doubled beside it (a GNSS bias bends faster than an INS's drift) it
+    is, on the truth."""
+    base = _true_along
+    bumped = lambda s: base(s) + 0.35 * np.exp(-(((np.asarray(s, float) - 35.0) / 25.0) ** 2))  # noqa: E731
+    monkeypatch.setattr(sys.modules[__name__], "_true_along", bumped)
+    offsets, trajs, s = _chain({1: 0.6, 2: -0.6}, statuses={k: "ok" for k in range(3, 14)}, first=10.0)
+    options = AlongTrackOptions(anchor_gate=anchor_gate, released_walk=released_walk)
+    out, _ = resolve_along_track(offsets, trajs, options)
+    assert (out[1].status == "coarse") == fixed, out[1].status
+    sure = [k for k, o in enumerate(out) if o.status in ("ok", "coarse")]
+    np.testing.assert_allclose([out[k].d[0] for k in sure], bumped(s[sure]), atol=0.01)
+
+
 def test_aliases_only_the_edge_profile_shows_are_resolved():
     """Pairs of a ring-jointed tube: their fitness profiles are flat (the joints' step lies within
     the fitness radius) but their edge profiles show an alias every period, with measured noise.
