@@ -633,7 +633,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
             # a lone mark's correction spreads over the gaps either side: alone, only where they are short
-            far_mark = p.lone_mark and var[i] > (LONE_MARK_PREDICTION * options.min_period) ** 2
+            far_mark = p.lone_mark and var[i] > _lone_mark_var(options)
             # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that;
             # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not
@@ -663,17 +663,21 @@ def _marks_that_agree(chain: list[Pair], fixed: np.ndarray, far_marks: list[tupl
     drift turned (feature_poor 0). In a held-out mixed tunnel 1.3 times as long, two boxes 25 m
     apart, 200 m from other evidence, were predicted to 0.21-0.27 m and each placed within 1.5 cm;
     left unfixed, runs b and c sat 0.19 m apart there."""
-    gate = (LONE_MARK_PREDICTION * options.min_period) ** 2
     for i, best, margin in far_marks:  # a handful per run pair
         trial = fixed.copy()
         trial[i] = chain[i].u[best]
         mu, var = _smooth(chain, trial, options, walks, anchor_var)
         for j, other, other_margin in far_marks:
             q = chain[j]
-            if j != i and abs(q.s - chain[i].s) <= options.rate_radius and var[j] <= gate and (
+            if j != i and abs(q.s - chain[i].s) <= options.rate_radius and var[j] <= _lone_mark_var(options) and (
                     (q.u[other] - mu[j]) ** 2 <= 9.0 * (var[j] + q.sd**2)):
                 return [(i, best, margin), (j, other, other_margin)]
     return []
+
+
+def _lone_mark_var(options: AlongTrackOptions) -> float:
+    """The prediction variance up to which a lone mark is fixed on its own (m^2)."""
+    return (LONE_MARK_PREDICTION * options.min_period) ** 2
 
 
 def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
@@ -774,9 +778,8 @@ def _contradicted(chain: list[Pair], fixed: np.ndarray, mu: np.ndarray, var: np.
             continue
         best = p.u[np.argmin(np.abs(p.u - mu[i]))]
         period = p.period or options.min_period
-        nearest_unseen = best + period * np.round((mu[i] - best) / period)
-        miss = min(abs(best - mu[i]), abs(nearest_unseen - mu[i]))
-        out[i] = miss**2 > options.anchor_gate**2 * (var[i] + p.sd**2)
+        nearest = best + period * np.round((mu[i] - best) / period)  # (best itself where that is nearest)
+        out[i] = (nearest - mu[i]) ** 2 > options.anchor_gate**2 * (var[i] + p.sd**2)
     return out
 
 
