@@ -667,6 +667,26 @@ def test_an_alias_no_peak_shows_lies_a_whole_period_of_the_profile_away(sleepers
         assert o.status not in ("ok", "coarse") or abs(o.d[0] - _true_along(s[k : k + 1])[0]) < 0.01
 
 
+@pytest.mark.parametrize("off_m", [0.0, 0.14])
+def test_a_pair_moved_to_a_peak_off_every_period_is_placed_no_better_than_that(off_m):
+    """In the ring-jointed tube one pair's peak nearest the truth lies ``off_m`` past the truth
+    (a noisy edge profile; a held-out tube's pair moved there sat 12.9 cm off claiming 2.6 cm).
+    The chain moves it there all the same, but aliases lie whole periods (its neighbours' 1.5 m)
+    apart, so its along-track sd is at least its distance from the nearest multiple; a pair
+    moved by a whole period keeps its sd."""
+    offsets, trajs, s = _ring_jointed_tube(0.0)
+    prof = offsets[5].info["alias_profile"]
+    ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+    peaks = np.concatenate([[-off_m], np.arange(-6.0, 6.1, 1.5)[np.arange(-6.0, 6.1, 1.5) != 0.0]])
+    fitness = 0.6 + 0.3 * np.exp(-(((ts[:, None] + 3.0 + peaks[None, :]) / 0.04) ** 2)).sum(axis=1)
+    offsets[5] = replace(offsets[5], info=dict(offsets[5].info, alias_profile=dict(prof, fitness=fitness.tolist())))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(rate_walk=0.003))
+    error = abs(out[5].d[0] - _true_along(s[5:6])[0])
+    assert out[5].status == "coarse" and error == pytest.approx(off_m, abs=0.01)
+    assert off_m <= 3.0 * np.sqrt(out[5].cov[0, 0]) and np.sqrt(out[5].cov[0, 0]) < 0.02 + off_m
+    assert np.sqrt(out[2].cov[0, 0]) < 0.02  # moved by a whole period
+
+
 @pytest.mark.parametrize(("peaks", "period"), [
     ([-3.0, 3.0], 3.0),  # and the matcher's own fit: a 3.0 m combination
     ([-1.5, 1.49, 3.02], 1.5),
