@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from railtraj.data import PointTile
-from railtraj.matching.spacing import DESIGN_SPACING, profile_spacing, radius_scale
+from railtraj.matching.spacing import DESIGN_SPACING, profile_sampling, profile_spacing, radius_scale
 
 
 def _profiles(gap: float, rate: float = 250.0, per_profile: int = 500, length: float = 25.0) -> PointTile:
@@ -30,6 +30,21 @@ def test_radius_scale_grows_only_beyond_the_design_spacing():
     assert scale == pytest.approx(0.16 / DESIGN_SPACING, rel=0.1) and spacing == pytest.approx(0.16, rel=0.1)
 
 
+@pytest.mark.parametrize("per_profile", [500, 100])
+def test_profile_spacing_is_measured_when_a_profiles_points_lie_further_apart_than_the_profiles(per_profile):
+    """100 points round a 3 m tube lie 19 cm apart, the profiles 4 cm: a point's nearest
+    neighbour is in the next profile (the held-out surveys with 250-350 points per profile)."""
+    gap, along = profile_sampling(_profiles(0.04, per_profile=per_profile))
+    assert gap == pytest.approx(0.04, rel=0.1)
+    assert along == pytest.approx(2 * np.pi * 3.0 / per_profile, rel=0.1)
+
+
+def test_radius_scale_follows_the_area_each_point_of_a_sparse_profile_samples():
+    scale, gap = radius_scale(_profiles(0.04, per_profile=100))
+    assert scale == pytest.approx(np.sqrt(0.04 * 2 * np.pi * 3.0 / 100) / DESIGN_SPACING, rel=0.1)
+    assert gap == pytest.approx(0.04, rel=0.1)  # the profile gap still places edges along the track
+
+
 def test_too_few_points_say_nothing():
     tile = _profiles(0.04)
     assert np.isnan(profile_spacing(tile.subset(np.arange(10))))
@@ -39,9 +54,9 @@ def test_a_tile_is_measured_once_while_its_points_are_alive():
     from railtraj.matching import spacing
 
     tile, other = _profiles(0.04), _profiles(0.08)
-    before = spacing._spacings.builds
-    assert spacing.tile_spacing(tile) == profile_spacing(tile)
+    before = spacing._samplings.builds
+    assert spacing.tile_sampling(tile)[0] == profile_spacing(tile)
     radius_scale(tile)
     radius_scale(tile, other)
-    assert spacing._spacings.builds - before == 2  # tile once, other once
+    assert spacing._samplings.builds - before == 2  # tile once, other once
     assert radius_scale(tile, other)[1] == pytest.approx(0.08, rel=0.1)
