@@ -60,7 +60,7 @@ class AlongTrackOptions:
     rate_walk: float = 0.001        # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
-    anchor_gate: float = 4.0        # a pair none of whose aliases lies within this many sd of the prediction releases its anchor
+    anchor_gate: float = 3.0        # a pair none of whose aliases lies within this many sd of the prediction releases its anchor
     released_walk: float = 2.0      # ... and the rate's wander on the steps either side of it is this many times more
     min_margin: float = 16.0        # cost (chi-square) by which the chosen candidate must win: 4 sigma
     min_period: float = 0.5         # shortest alias assumed where a pair shows only one candidate (m)
