@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from railtraj.data import PointTile
-from railtraj.matching.spacing import DESIGN_SPACING, profile_sampling, profile_spacing, radius_scale
+from railtraj.matching.spacing import (
+    DESIGN_SPACING,
+    profile_sampling,
+    profile_spacing,
+    radius_scale,
+)
 
 
 def _profiles(gap: float, rate: float = 250.0, per_profile: int = 500, length: float = 25.0) -> PointTile:
