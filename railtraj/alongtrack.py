@@ -779,8 +779,8 @@ def _contradicted(chain: list[Pair], fixed: np.ndarray, mu: np.ndarray, var: np.
             continue
         best = p.u[np.argmin(np.abs(p.u - mu[i]))]
         period = p.period or options.min_period
-        nearest = best + period * np.round((mu[i] - best) / period)  # (best itself where that is nearest)
-        out[i] = (nearest - mu[i]) ** 2 > options.anchor_gate**2 * (var[i] + p.sd**2)
+        # the nearest alias is best itself or a multiple of the period from it
+        out[i] = _off_multiple(mu[i] - best, period) ** 2 > options.anchor_gate**2 * (var[i] + p.sd**2)
     return out
 
 
@@ -895,7 +895,7 @@ def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongT
     width = float(pair.width[chosen][0]) if pair.width is not None and chosen.any() else step
     extra = max(width, step) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
     if abs(shift) > 1e-9 and len(periods) and not pair.lone_mark:
-        extra += float(np.min(np.abs(shift - np.round(shift / periods) * periods))) ** 2
+        extra += float(np.min(_off_multiple(shift, periods))) ** 2
     extra += (options.sampling_sd * _profile_gap(o)) ** 2
     if _degenerate_fit(o):
         spread = float(o.info["piecewise"].get("window_spread_m", 0.0))
@@ -903,6 +903,12 @@ def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongT
     if _on_few_marks(o):  # at least MARKS_PAIR_SD: such a window is now and then 6-13 cm off
         extra = max(extra, MARKS_PAIR_SD**2 - sd**2)
     return extra
+
+
+def _off_multiple(x: float, period: float | np.ndarray) -> float | np.ndarray:
+    """How far ``x`` (m) lies from the nearest whole multiple of ``period`` (m): where an alias a
+    period apart would be."""
+    return np.abs(x - period * np.round(x / period))
 
 
 def _periods_near(chain: list[Pair], options: AlongTrackOptions) -> list[np.ndarray]:
