@@ -700,6 +700,39 @@ def test_a_profiles_alias_period_is_the_spacing_of_its_evenly_spaced_peaks(peaks
     assert _alias_period(np.array(peaks), 0.5) == pytest.approx(period, abs=0.02)
 
 
+@pytest.mark.parametrize(("weak_at", "fixed"), [(2.6, True), (2.45, False)])
+def test_a_weak_peak_where_a_fading_trains_lattice_puts_an_alias_is_a_candidate(weak_at, fixed):
+    """Sleepers in an open cutting: a train of peaks every 0.65 m that fades with the overlap
+    (portal_trap 1 at its multipath bump). The truth lies ``weak_at`` metres back from the
+    matcher's fit, where the profile rises 2.5 counting sd only. On the train's lattice (2.6 m,
+    four sleepers back) that is evidence enough, and the chain fixes it; 15 cm off the lattice
+    it is noise, and the pair stays ambiguous."""
+    offsets, trajs, s = _chain({7: weak_at}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    prof = offsets[7].info["alias_profile"]
+    ts = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
+    bump = lambda at, rise: rise * np.exp(-(((ts - at) / 0.08) ** 2))  # noqa: E731
+    fitness = 0.78 + sum(bump(-k * 0.65, 0.04) for k in range(4)) + bump(-weak_at, 0.025)  # 4 and 2.5 sd
+    offsets[7] = replace(offsets[7], info=dict(offsets[7].info, alias_profile=dict(prof, fitness=fitness.tolist(),
+                                                                                      points=4000)))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    error = abs(out[7].d[0] - _true_along(s[7:8])[0])
+    assert (out[7].status in ("ok", "coarse") and error < 0.02) == fixed, (out[7].status, error)
+    assert fixed or out[7].status == "ambiguous"
+
+
+@pytest.mark.parametrize(("peaks", "lattice"), [
+    ([-1.95, -0.65, -3.25], 0.65),  # every gap (and the matcher's fit) a whole number of sleepers
+    ([-1.2, 1.5, 3.0], None),  # sleepers and ribs: gaps 0.3 m, shorter than min_period
+    ([-1.95, -0.8], None),  # 0.8 m is no multiple of 1.15 m
+    ([1.3], None),  # two points show no lattice
+])
+def test_a_profiles_lattice_is_the_spacing_every_gap_between_its_peaks_is_a_multiple_of(peaks, lattice):
+    from railtraj.alongtrack import _lattice_period
+
+    got = _lattice_period(np.array(peaks), 0.5)
+    assert got == pytest.approx(lattice, abs=0.01) if lattice else got is None
+
+
 def test_an_unresolved_pair_keeps_its_drift_rate_for_the_adjustment():
     """Nothing is fixed (no anchor, no unique object), yet a pair whose windows span 20 m still
     measures how the runs' offset changes there: its curve's change over that span goes to the
