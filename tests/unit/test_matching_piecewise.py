@@ -469,3 +469,30 @@ def test_a_window_placed_by_marks_that_the_curve_drops_leaves_the_others_their_f
     assert np.sqrt(cov[0, 0]) == pytest.approx(np.sqrt(alone[0, 0]))  # 2 cm floor: twice that
     _, cov, used, _ = curve_through(np.vstack([box, edges[:3] * [1, 0, 1, 1, 0]]), AXIS, 0.0)
     assert used[0] and np.sqrt(cov[0, 0]) >= 0.02 / np.sqrt(2)  # kept: along to centimetres only
+
+
+def test_edge_windows_on_another_alias_than_a_mark_count_across_and_up_only():
+    """Ribs for 12 m, then a plain tube with a stain on its wall (the end of a ribbed section).
+    The votes chose the alias one rib (1.5 m) on: the edge windows find that alias, the window
+    over the stain finds the truth. They are further apart than any drift moves the runs in
+    12 m, so the edges are on an alias: the curve rests on the stain, and the edge windows place
+    run b across and up only. Through both, its slope was metres per 10 m."""
+    def run(seed: int, phase: float) -> np.ndarray:
+        return np.concatenate([_scanned(0, 12, seed, phase), _scanned(12, 24, seed + 1, phase, features=False)])
+
+    marks = [((19.0, -3.0, 1.5), 1.8)]
+    a_xyz, b_true = run(0, 0.0), run(10, 0.023)
+    a_int, b_int = _marked(a_xyz, marks, 1), _marked(b_true, marks, 2)
+    d0, g = np.array([0.3, 0.02, -0.01]), np.array([0.003, 0.0, 0.0])
+    b_xyz = b_true - (d0 + (b_true[:, 0] - 12.0)[:, None] * g)
+    start = d0 + np.array([1.5, 0.0, 0.0])
+    fit = piecewise_fit(build_target(a_xyz), a_xyz, b_xyz, start, length=5.0, intensity=(a_int, b_int),
+                        vote_window=(start, 3.0))
+    x = fit.windows[:, 0] + fit.origin[0]
+    truth = d0[0] + (x - 12.0) * g[0]
+    assert (fit.windows[:, 5] == 2).any() and fit.on_marks
+    assert np.all(np.abs(fit.windows[fit.windows[:, 5] > 0, 1] - truth[fit.windows[:, 5] > 0]) < 0.05)
+    x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
+    assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.05
+    assert abs(fit.gradient[0]) < 0.05
+    np.testing.assert_allclose(fit.windows[x < 12, 2:4], np.tile(d0[1:], ((x < 12).sum(), 1)), atol=0.01)
