@@ -472,13 +472,13 @@ def test_a_window_placed_by_marks_that_the_curve_drops_leaves_the_others_their_f
 
 
 def test_edge_windows_on_another_alias_than_a_mark_count_across_and_up_only():
-    """Ribs for 12 m, then a plain tube with a stain on its wall (the end of a ribbed section).
-    The votes chose the alias one rib (1.5 m) on: the edge windows find that alias, the window
-    over the stain finds the truth. They are further apart than any drift moves the runs in
-    12 m, so the edges are on an alias: the curve rests on the stain, and the edge windows place
-    run b across and up only. Through both, its slope was metres per 10 m."""
+    """Ribs for 7 m, then a plain tube with a stain on its wall (the end of a ribbed section).
+    The votes chose the alias one rib (1.5 m) on: the one or two edge windows find that alias,
+    the window over the stain finds the truth. They are further apart than any drift moves the
+    runs in 10 m, so the edges are on an alias: the curve rests on the stain, and the edge
+    windows place run b across and up only. Through both, its slope was metres per 10 m."""
     def run(seed: int, phase: float) -> np.ndarray:
-        return np.concatenate([_scanned(0, 12, seed, phase), _scanned(12, 24, seed + 1, phase, features=False)])
+        return np.concatenate([_scanned(0, 7, seed, phase), _scanned(7, 24, seed + 1, phase, features=False)])
 
     marks = [((19.0, -3.0, 1.5), 1.8)]
     a_xyz, b_true = run(0, 0.0), run(10, 0.023)
@@ -495,4 +495,20 @@ def test_edge_windows_on_another_alias_than_a_mark_count_across_and_up_only():
     x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
     assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.05
     assert abs(fit.gradient[0]) < 0.05
-    np.testing.assert_allclose(fit.windows[x < 12, 2:4], np.tile(d0[1:], ((x < 12).sum(), 1)), atol=0.01)
+    np.testing.assert_allclose(fit.windows[x < 7, 2:4], np.tile(d0[1:], ((x < 7).sum(), 1)), atol=0.01)
+
+
+@pytest.mark.parametrize(("edges_at", "mark_at", "dropped"), [
+    ([(5.0, 2.1)], (9.0, -0.15), 1),  # mixed 817's pair: one edge window 2.3 m from the mark, 4 m away
+    ([(-6.0, 2.2), (5.7, 2.3)], (-8.5, -0.5), 2),  # portal_trap 1's: two
+    ([(-5.0, 0.2), (-1.0, 0.22), (3.0, 0.2)], (7.0, -1.2), 0),  # three agree: the curve decides
+    ([(5.0, 0.2)], (6.0, 0.05), 0),  # 15 cm in 1 m: no alias, the same offset
+    ([(0.0, 0.2)], (10.0, 0.75), 0),  # 55 cm in 10 m: a drift could do that
+])
+def test_edge_windows_a_mark_contradicts_are_dropped_only_where_too_few_to_check_each_other(edges_at, mark_at, dropped):
+    """Windows (s, along-track offset) placed by edges and one placed by a mark, along the x axis."""
+    from railtraj.matching.piecewise import _off_the_marks
+
+    rows = [[s, u, 0.1, 0.0, 1.0] for s, u in edges_at] + [[mark_at[0], mark_at[1], 0.1, 0.0, 2.0]]
+    off = _off_the_marks(np.array(rows), AXIS)
+    assert off.sum() == dropped and not off[-1]
