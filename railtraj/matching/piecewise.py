@@ -648,7 +648,7 @@ def _off_the_marks(windows: np.ndarray, axis: np.ndarray) -> np.ndarray:
     the edges are on another alias: they count across and up only, as windows that found no
     along-track offset. Only one or two such edge windows, though: a line through them and the
     mark fits them all, however wrong its slope. Five simulated pairs had such windows: the
-    mark was right (2-13 cm off the truth), the edges 0.7-3.0 m off, the curve's slope
+    mark was right (2-19 cm off the truth), the edges 0.7-3.0 m off, the curve's slope
     0.2-0.7 m/m, and its along-track profile, smeared by that slope, showed no peak. Three edge
     windows or more check each other, and the curve drops what disagrees (:func:`fit_curve`):
     on commensurate 2 the mark was the one on an alias, 1.37 m off, its three edges right to
