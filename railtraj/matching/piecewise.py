@@ -86,6 +86,7 @@ class Piecewise:
     span: tuple[float, float]  # along-track range of the windows the curve was fitted on
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
     marks: LazyMarks | None = None  # the clouds' intensity marks and short objects, where looked for
+    off_marks: int = 0  # edge windows a mark showed on another alias: across and up only (_off_the_marks)
 
     @property
     def on_marks(self) -> bool:
@@ -146,7 +147,8 @@ class Piecewise:
                 "window_resid_sd_mm": (self.resid_sd * 1000).round(2).tolist(),
                 "windows": np.round(self.windows, 4).tolist(), "windows_used": self.n_used,
                 "axis": self.axis.tolist(), "ref_point": (self.origin + self.s_ref * self.axis).tolist(),
-                "gradient": self.gradient.tolist(), "fit_cov": self.cov.tolist()}
+                "gradient": self.gradient.tolist(), "fit_cov": self.cov.tolist(),
+                **({"windows_off_marks": self.off_marks} if self.off_marks else {})}
 
 
 def track_axis(information: np.ndarray) -> np.ndarray:
@@ -606,7 +608,8 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     windows = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
-    windows[_off_the_marks(windows, axis), 4] = 0  # on another alias than the marks: across and up only
+    off_marks = _off_the_marks(windows, axis)
+    windows[off_marks, 4] = 0  # on another alias than the marks: across and up only
     s_ref = float(np.median(s))
     coefs, cov, used, sd = curve_through(windows, axis, s_ref)
     between = reference_position(s_ref, windows, used)
@@ -617,7 +620,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
-    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks)
+    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks, int(off_marks.sum()))
 
 
 def curve_through(windows: np.ndarray, axis: np.ndarray, s_ref: float) -> tuple:

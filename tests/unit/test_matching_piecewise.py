@@ -491,6 +491,7 @@ def test_edge_windows_on_another_alias_than_a_mark_count_across_and_up_only():
     x = fit.windows[:, 0] + fit.origin[0]
     truth = d0[0] + (x - 12.0) * g[0]
     assert (fit.windows[:, 5] == 2).any() and fit.on_marks
+    assert fit.summary()["windows_off_marks"] >= 1  # reported with the pair
     assert np.all(np.abs(fit.windows[fit.windows[:, 5] > 0, 1] - truth[fit.windows[:, 5] > 0]) < 0.05)
     x_ref = fit.origin[0] + fit.s_ref * fit.axis[0]
     assert abs(fit.d_ref[0] - (d0[0] + (x_ref - 12.0) * g[0])) < 0.05
