@@ -383,7 +383,8 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
             return np.sqrt(2.0) * measured[peaks]
         return _counting_noise(fitness, peaks, prominence, n_points)
 
-    significant = props["prominences"] >= options.min_significance * noise(props["prominences"])
+    peak_noise = noise(props["prominences"])
+    significant = props["prominences"] >= options.min_significance * peak_noise
     # ... and another alias than the matcher's own fit is one to move to only if it also stands
     # out against the dips within min_period either side (aliases lie a period apart, so a
     # real one falls off within a period). Against the whole window, the top sample of a flat
@@ -394,13 +395,14 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     with warnings.catch_warnings():  # "some peaks have a prominence of 0": a flat stretch, no alias
         warnings.simplefilter("ignore", RuntimeWarning)
         local = peak_prominences(fitness, peaks, wlen=within)[0]
-    movable = local >= options.min_significance * noise(local)
+    local_noise = noise(local)
+    movable = local >= options.min_significance * local_noise
     shift = ts[peaks] + _vertex(fitness, peaks) * prof["step"]  # sub-sample, from the matcher's fit
     lattice = _lattice_period(shift[significant], options.min_period)
     if lattice:  # a peak where the significant ones' lattice puts an alias is tested there only
         on = _off_multiple(shift, lattice) <= LATTICE_TOLERANCE * lattice
-        significant |= on & (props["prominences"] >= options.lattice_significance * noise(props["prominences"]))
-        movable |= on & (local >= options.lattice_significance * noise(local))
+        significant |= on & (props["prominences"] >= options.lattice_significance * peak_noise)
+        movable |= on & (local >= options.lattice_significance * local_noise)
     peaks, movable, shift = peaks[significant], movable[significant], shift[significant]
     period = _alias_period(shift, options.min_period)
     if len(peaks):
@@ -442,12 +444,18 @@ def _alias_period(shift: np.ndarray, min_period: float) -> float:
     the margin at 10 of 18 pairs whose joint nearest the prediction was right to 1-3 cm. Peaks
     dropped for their misfit count here: commensurate ribs and sleepers show their 3.0 m
     combination strongest, and the sleepers' 0.6 m between, weaker, keep the period short."""
-    gaps = np.diff(np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0)))
+    gaps = _peak_gaps(shift, min_period)
     if len(gaps) < 2:
         return min_period
     median = float(np.median(gaps))
     even = median >= min_period and bool((np.abs(gaps - median) <= 0.15 * median).all())
     return median if even else min_period
+
+
+def _peak_gaps(shift: np.ndarray, min_period: float) -> np.ndarray:
+    """Gaps (m) between a profile's peaks in order, the matcher's fit (shift 0) among them; a
+    peak within a quarter of ``min_period`` of that fit is that fit."""
+    return np.diff(np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0)))
 
 
 def _lattice_period(shift: np.ndarray, min_period: float) -> float | None:
@@ -459,10 +467,9 @@ def _lattice_period(shift: np.ndarray, min_period: float) -> float | None:
     Searched for anywhere, a peak must rise 3 sd to be no noise; at a multiple of the train's
     spacing an alias is expected, and 2 sd say it is there. Portal_trap 1's pair at its multipath
     bump had its right alias 2.6 m on, 2.9 sd, beside significant peaks 0.65, 1.95 and 3.25 m on."""
-    points = np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0))
-    if len(points) < 3:
+    gaps = _peak_gaps(shift, min_period)
+    if len(gaps) < 2:
         return None
-    gaps = np.diff(points)
     base = float(gaps.min())
     if base < min_period or (_off_multiple(gaps, base) > LATTICE_TOLERANCE * base).any():
         return None

@@ -58,11 +58,6 @@ def profile_sampling(tile: PointTile, slice_s: float = 0.4, queries: int = 500, 
                  for d in nearest)
 
 
-def profile_spacing(tile: PointTile, **kwargs) -> float:
-    """The gap (m) between consecutive scan profiles (:func:`profile_sampling`)."""
-    return profile_sampling(tile, **kwargs)[0]
-
-
 _samplings = ArrayMemo(lambda xyz, tile: profile_sampling(tile), size=8)
 
 

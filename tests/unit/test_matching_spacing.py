@@ -9,7 +9,6 @@ from railtraj.data import PointTile
 from railtraj.matching.spacing import (
     DESIGN_SPACING,
     profile_sampling,
-    profile_spacing,
     radius_scale,
 )
 
@@ -26,7 +25,7 @@ def _profiles(gap: float, rate: float = 250.0, per_profile: int = 500, length: f
 
 @pytest.mark.parametrize("gap", [0.04, 0.08, 0.16])
 def test_profile_spacing_is_the_gap_between_profiles(gap):
-    assert profile_spacing(_profiles(gap)) == pytest.approx(gap, rel=0.1)
+    assert profile_sampling(_profiles(gap))[0] == pytest.approx(gap, rel=0.1)
 
 
 def test_radius_scale_grows_only_beyond_the_design_spacing():
@@ -52,7 +51,7 @@ def test_radius_scale_follows_the_area_each_point_of_a_sparse_profile_samples():
 
 def test_too_few_points_say_nothing():
     tile = _profiles(0.04)
-    assert np.isnan(profile_spacing(tile.subset(np.arange(10))))
+    assert np.isnan(profile_sampling(tile.subset(np.arange(10)))[0])
 
 
 def test_a_tile_is_measured_once_while_its_points_are_alive():
@@ -60,7 +59,7 @@ def test_a_tile_is_measured_once_while_its_points_are_alive():
 
     tile, other = _profiles(0.04), _profiles(0.08)
     before = spacing._samplings.builds
-    assert spacing.tile_sampling(tile)[0] == profile_spacing(tile)
+    assert spacing.tile_sampling(tile)[0] == profile_sampling(tile)[0]
     radius_scale(tile)
     radius_scale(tile, other)
     assert spacing._samplings.builds - before == 2  # tile once, other once
