@@ -100,9 +100,6 @@ class Curve:
 #: 7.8 cm, 5.4 sd of the 1.5 cm they claimed); one window of a pair sat 12.6 cm off where the
 #: other was right to 0.7 cm, and two windows cannot check each other
 MARKS_PAIR_SD = 0.03
-#: a pair resting on one mark (a box, a stain) is fixed only where the chain predicts it to this
-#: fraction of ``min_period`` (sd): see :func:`_resolve_chain`
-LONE_MARK_PREDICTION = 1.0 / 3.0
 #: how near a multiple of a profile's lattice (a fraction of its spacing) a peak lies on it
 LATTICE_TOLERANCE = 0.1
 #: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
@@ -609,17 +606,18 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
       windows' fit is a disagreement, not an alias (it sat 11 cm off, in the demo's circular
       section),
     * and that alias stands out within a period of itself, not only against the whole window
-      (``Pair.movable``; a flat profile's top sample is no alias),
-    * and, for a pair resting on one mark (``Pair.lone_mark``: a box, a stain; it is charged no
-      alias within its profile), the chain predicts it to ``LONE_MARK_PREDICTION`` times
-      ``min_period`` (sd) or better. Fixed, a lone mark's correction is spread by the adjustment
-      over the gaps to the next evidence either side, and where the runs' drift turns within
-      them that hurts: on feature_poor 0 a box 55 m from one portal's pairs and 350 m from the
-      other's (predicted to 0.21 m), placed right to 5 mm, put the runs 0.3-0.48 m apart where
-      they had been 0.2 m (inter-run RMS 0.17 -> 0.24 m, the input's 0.18). In the demo's
-      circular section a box 134 and 48 m from fixed pairs (predicted to 0.135 m) took the
-      inter-run max from 11.8 to 7.4 cm. Two such marks within ``rate_radius`` that agree are
-      fixed together however far the next evidence is (:func:`_marks_that_agree`).
+      (``Pair.movable``; a flat profile's top sample is no alias).
+
+    A pair resting on one mark (``Pair.lone_mark``: a box, a stain) is charged no alias within
+    its profile, which spans the whole search window: the unseen alias lies beyond the
+    profile's nearer end (``Pair.period``), so the mark is fixed only where the search window
+    covers the prediction (2.6 sd of it at least, for ``min_margin`` 16). Session 30 fixed
+    such a pair only where the chain predicted it to 0.167 m: fixed 350 m from other
+    evidence, one box's correction, spread over the gaps, had moved the runs apart where the
+    drift turned. The adjustment now follows the drift between such ties: on 45 surveys,
+    15 boxes predicted to 0.17-0.59 m were fixed, 0.4-3.0 cm off (sd 3 cm at least), and
+    feature_poor 0 / 1 / 2 went from 0.168 / 0.414 / 0.660 m (inter-run RMS) to 0.035 / 0.264 /
+    0.136 m, no epoch beyond 3 sd.
 
     Before any pair is fixed in a round, a pair that has no alias within ``anchor_gate`` sd of
     its prediction releases its anchor (:func:`_contradicted`), and the chain predicts again.
@@ -650,7 +648,7 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             walks = drift_walks.copy()
             walks[np.minimum(np.concatenate([beside, beside + 1]), n - 1)] *= options.released_walk
             continue
-        newly, far_marks = [], []
+        newly = []
         for i, p in enumerate(chain):
             if np.isfinite(fixed[i]):
                 continue
@@ -667,8 +665,6 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             unseen = (p.u[best] - k * period - mu[i]) ** 2 / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
-            # a lone mark's correction spreads over the gaps either side: alone, only where they are short
-            far_mark = p.lone_mark and var[i] > _lone_mark_var(options)
             # peaks closer than the shortest period cannot both be aliases: one is the
             # profile's noise, and where another alias sits is then known no better than that;
             # the matcher's own choice (shift 0) counts as such a peak whether the profile shows it or not
@@ -677,42 +673,12 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             result[i] = (float(p.shift[best]), margin, "ambiguous")
             movable = p.movable is None or bool(p.movable[best])
             if near and not crowded and movable and margin >= options.min_margin:
-                (far_marks if far_mark else newly).append((i, best, margin))
-        if not newly:
-            newly = _marks_that_agree(chain, fixed, far_marks, options, walks, anchor_var)
+                newly.append((i, best, margin))
         if not newly:
             return result, mu, var
         for i, best, margin in newly:
             fixed[i] = chain[i].u[best]
             result[i] = (float(chain[i].shift[best]), margin, "resolved")
-
-
-def _marks_that_agree(chain: list[Pair], fixed: np.ndarray, far_marks: list[tuple[int, int, float]],
-                      options: AlongTrackOptions, walks: np.ndarray, anchor_var: np.ndarray
-                      ) -> list[tuple[int, int, float]]:
-    """Two lone marks (boxes) within ``rate_radius`` of each other, each predicted too vaguely to
-    be fixed alone (``far_marks``: its index, candidate and margin), that agree: with the first
-    fixed, the chain predicts the second to ``LONE_MARK_PREDICTION`` times ``min_period`` and its
-    candidate within 3 sd. Together they fix the offset and its rate there, which one mark cannot:
-    fixed alone, one box 350 m from the next evidence spread its correction over a gap in which the
-    drift turned (feature_poor 0). In a held-out mixed tunnel 1.3 times as long, two boxes 25 m
-    apart, 200 m from other evidence, were predicted to 0.21-0.27 m and each placed within 1.5 cm;
-    left unfixed, runs b and c sat 0.19 m apart there."""
-    for i, best, margin in far_marks:  # a handful per run pair
-        trial = fixed.copy()
-        trial[i] = chain[i].u[best]
-        mu, var = _smooth(chain, trial, options, walks, anchor_var)
-        for j, other, other_margin in far_marks:
-            q = chain[j]
-            if j != i and abs(q.s - chain[i].s) <= options.rate_radius and var[j] <= _lone_mark_var(options) and (
-                    (q.u[other] - mu[j]) ** 2 <= 9.0 * (var[j] + q.sd**2)):
-                return [(i, best, margin), (j, other, other_margin)]
-    return []
-
-
-def _lone_mark_var(options: AlongTrackOptions) -> float:
-    """The prediction variance up to which a lone mark is fixed on its own (m^2)."""
-    return (LONE_MARK_PREDICTION * options.min_period) ** 2
 
 
 def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:

@@ -822,32 +822,33 @@ def _lone_box(ok: tuple[int, ...], *lone: int) -> tuple[list[TileOffset], dict[s
     return offsets, trajs, s
 
 
-@pytest.mark.parametrize(("lone", "fixed"), [(4, True), (8, True), (6, False)])
-def test_a_lone_box_is_fixed_only_where_the_chain_predicts_it_closely(lone, fixed):
+@pytest.mark.parametrize("lone", [4, 8, 6])
+def test_a_lone_box_is_fixed_where_its_search_window_covers_the_prediction(lone):
     """A box's profile shows every alias within the search window (none): it is not charged one
-    half a metre away. 50 m from the portal's pairs the chain predicts it to 0.145 m and it is
-    fixed (coarse: one window, nothing checks it); in the middle of a 200 m gap (0.22 m) it is
-    not, for its correction would be spread over the whole gap."""
+    half a metre away. 50 m from the portal's pairs the chain predicts it to 0.145 m; in the
+    middle of a 200 m gap, to 0.22 m. Either way the search window (2 m and more either side)
+    covers the prediction, and the box is fixed on the truth (coarse: one window, nothing
+    checks it)."""
     offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), lone)
     out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
     row = next(r for r in report if r["pair"] == lone)
-    assert (out[lone].status == "coarse") == fixed, (out[lone].status, row)
-    if fixed:
-        assert abs(out[lone].d[0] - _true_along(s[lone:lone + 1])[0]) < 0.01
-        assert np.sqrt(out[lone].cov[0, 0]) >= 0.03  # MARKS_PAIR_SD: one window placed by marks
-    else:
-        assert not np.sqrt(out[lone].cov[0, 0]) < 1.0  # not along the track (on one window: not at all)
+    assert out[lone].status == "coarse", (out[lone].status, row)
+    assert abs(out[lone].d[0] - _true_along(s[lone:lone + 1])[0]) < 0.01
+    assert np.sqrt(out[lone].cov[0, 0]) >= 0.03  # MARKS_PAIR_SD: one window placed by marks
 
 
-@pytest.mark.parametrize(("boxes", "rate_radius", "fixed"), [((6, 7), 50.0, True), ((5, 6), 50.0, True),
-                                                         ((6, 7), 20.0, False)])
-def test_two_lone_boxes_that_agree_are_fixed_where_one_would_not_be(boxes, rate_radius, fixed):
-    """Two boxes 25 m apart in the middle of the 200 m gap, each predicted to 0.2 m: too vaguely
-    to be fixed alone (the test above), but each, fixed, predicts the other to centimetres and
-    its box lies there, so both are fixed on the truth. Further apart than ``rate_radius``
-    neither is."""
-    offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), *boxes)
-    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions(rate_radius=rate_radius))
-    assert all((out[k].status == "coarse") == fixed for k in boxes), [out[k].status for k in boxes]
-    for k in boxes:
-        assert not fixed or abs(out[k].d[0] - _true_along(s[k:k + 1])[0]) < 0.01
+@pytest.mark.parametrize(("reach", "fixed"), [(0.5, False), (1.0, True)])
+def test_a_lone_box_searched_too_narrowly_for_its_prediction_is_not_fixed(reach, fixed):
+    """In the middle of the gap (predicted to 0.22 m) a box whose profile was searched only
+    0.5 m either side says nothing of the shifts beyond: the true offset may lie there, and the
+    box stays unfixed. Searched 1 m either side (4.5 sd), it is fixed."""
+    offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), 6)
+    profile = offsets[6].info["alias_profile"]
+    ts = profile["start"] + profile["step"] * np.arange(len(profile["fitness"]))
+    inside = np.abs(ts) <= reach + 1e-9
+    narrow = dict(profile, start=float(ts[inside][0]), fitness=np.asarray(profile["fitness"])[inside].tolist())
+    offsets[6] = replace(offsets[6], info=dict(offsets[6].info, alias_profile=narrow))
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    row = next(r for r in report if r["pair"] == 6)
+    assert (out[6].status == "coarse") == fixed, (out[6].status, row)
+    assert not fixed or abs(out[6].d[0] - _true_along(s[6:7])[0]) < 0.01
