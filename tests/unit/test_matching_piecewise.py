@@ -513,3 +513,31 @@ def test_edge_windows_a_mark_contradicts_are_dropped_only_where_too_few_to_check
     rows = [[s, u, 0.1, 0.0, 1.0] for s, u in edges_at] + [[mark_at[0], mark_at[1], 0.1, 0.0, 2.0]]
     off = _off_the_marks(np.array(rows), AXIS)
     assert off.sum() == dropped and not off[-1]
+
+
+def _bent(xyz: np.ndarray, radius: float, x_mid: float = 12.0) -> np.ndarray:
+    """``xyz`` of a straight tunnel along x bent to the left on a curve of ``radius`` about x_mid."""
+    theta = (xyz[:, 0] - x_mid) / radius
+    return np.column_stack([x_mid + (radius - xyz[:, 1]) * np.sin(theta),
+                            radius * (1 - np.cos(theta)) + xyz[:, 1] * np.cos(theta), xyz[:, 2]])
+
+
+def test_a_mark_metres_from_the_start_on_a_curve_places_the_pair_across_where_it_sits():
+    """A plain tube on a 150 m curve, one stain 3 m from the overlap's middle, run b a metre
+    along the track from where the votes start it. A window fitted across at the start lies a
+    metre along a wall that turns: its across is off by that metre times the wall's turn there
+    (2 cm at the stain, 8 cm at the overlap's ends). The stain places its window along the
+    track; across and up are fitted again there, and so are the other windows' at the stain's
+    along-track offset: every window within 5 mm of the truth across and up, and the curve too."""
+    marks = [((15.0, -3.0, 1.5), 1.8)]
+    a_flat, b_flat = _scanned(0, 24, 0, 0.0, features=False), _scanned(0, 24, 10, 0.023, features=False)
+    a_int, b_int = _marked(a_flat, marks, 1), _marked(b_flat, marks, 2)
+    a_xyz, d = _bent(a_flat, 150.0), np.array([1.0, 0.02, -0.01])
+    b_xyz = _bent(b_flat, 150.0) - d
+    start = d - np.array([1.0, 0.0, 0.0])
+    fit = piecewise_fit(build_target(a_xyz), a_xyz, b_xyz, start, length=5.0, intensity=(a_int, b_int))
+    by_mark = fit.windows[:, 5] == 2
+    assert by_mark.sum() == 1 and fit.on_marks and len(fit.windows) >= 4
+    np.testing.assert_allclose(fit.windows[by_mark, 1], d[0], atol=0.03)  # to the scan lines
+    np.testing.assert_allclose(fit.windows[:, 2:4], np.tile(d[1:], (len(fit.windows), 1)), atol=0.005)
+    np.testing.assert_allclose(fit.d_ref[1:], d[1:], atol=0.005)
