@@ -1079,7 +1079,8 @@ def _marks_floor(o: TileOffset, cov: np.ndarray) -> np.ndarray:
         return cov
     axis = np.asarray(o.info["piecewise"]["axis"], float)
     up = np.array([0.0, 0.0, 1.0])
-    for n in (np.cross(up, axis) / np.linalg.norm(np.cross(up, axis)), up):
+    across = np.cross(up, axis)
+    for n in (across / np.linalg.norm(across), up):
         cov = cov + max(MARKS_ACROSS_SD**2 - float(n @ cov @ n), 0.0) * np.outer(n, n)
     return cov
 

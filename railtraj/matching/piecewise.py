@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 from railtraj.matching.consensus import alias_profile, misfit_ratio, profile_rivals, window_chord
 from railtraj.matching.intensity import LazyMarks, Surroundings
 from railtraj.matching.memo import ArrayMemo
-from railtraj.matching.refine import point_to_plane, sample
+from railtraj.matching.refine import Fit, point_to_plane, sample
 from railtraj.matching.target import PlaneTarget
 from railtraj.matching.threads import map_threads
 
@@ -385,30 +385,35 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         t_lo, t_hi = window_chord(d, axis, *vote_window) if vote_window is not None else (-MARKS_SEARCH, MARKS_SEARCH)
         return marks().place(lo, hi, frame @ d, t_lo, t_hi)
 
+    def fit_across(plane_target: PlaneTarget, pts: np.ndarray, d: np.ndarray) -> Fit:
+        """The window's points fitted across and up from ``d``, along the track held."""
+        return point_to_plane(plane_target, pts, d, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau,
+                              fixed=axis)
+
     def across_at(pts: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-        """The window's offset ``d`` with its across and up fitted again there, along held (None
-        where the window's points do not fit there): a mark moves a window metres along a
-        curving wall, whose across at the start no longer holds (a box 3.5 m from the window's
-        start sat 2.4 cm off across in a bored tube)."""
-        refit = point_to_plane(target if across_target is None else across_target, pts, d, iterations=10,
-                               max_dist=max(0.2, 2 * tau), fitness_radius=tau, fixed=axis)
+        """The window's offset ``d`` with its across and up fitted again there (None where the
+        window's points do not fit there): a mark moves a window metres along a curving wall,
+        whose across at the start no longer holds (a box 3.5 m from the window's start sat
+        2.4 cm off across in a bored tube)."""
+        refit = fit_across(target if across_target is None else across_target, pts, d)
         return refit.d if refit.fitness >= 0.5 and np.isfinite(refit.d).all() else None
 
-    def window_points(bounds: tuple[float, float, int]) -> np.ndarray | None:
+    def window_points(bounds: tuple[float, float, int]) -> tuple[np.ndarray | None, float]:
+        """The window's sample of points (None: too few) and their mean along-track position."""
         lo, hi, seed = bounds
         inside = (s >= lo) & (s <= hi)
-        return sample(moving[inside], points, seed=seed) if inside.sum() >= min_points else None
+        if inside.sum() < min_points:
+            return None, float("nan")
+        return sample(moving[inside], points, seed=seed), float(s[inside].mean())
 
     def window(bounds: tuple[float, float, int]) -> list[float] | None:
         lo, hi, _ = bounds
-        pts = window_points(bounds)
+        pts, s_mean = window_points(bounds)
         if pts is None:
             return None
-        s_mean = float(s[(s >= lo) & (s <= hi)].mean())
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if across_target is not None and across_target is not target and np.isfinite(fit.d).all():  # sparse walls too
-            fit = point_to_plane(across_target, pts, fit.d, iterations=10, max_dist=max(0.2, 2 * tau),
-                                 fitness_radius=tau, fixed=axis)
+            fit = fit_across(across_target, pts, fit.d)
         if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
             return None
         kept = pts[stays_on_tile(target, pts + fit.d, axis, ts, tau)]
@@ -454,7 +459,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
 
         def at_marks(i: int) -> np.ndarray | None:
             d = windows[plain[i], 1:4]
-            return across_at(window_points(kept[plain[i]][1]), d + (along[i] - d @ axis) * axis)
+            return across_at(window_points(kept[plain[i]][1])[0], d + (along[i] - d @ axis) * axis)
 
         refitted = map_threads(at_marks, len(plain))
         for k, d in zip(plain, refitted, strict=True):
