@@ -201,7 +201,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     ties = Ties.concat([o.ties for o in ok if o.ties is not None])
     offsets = [r.offset for r in results]
     # the optimizer weighs the runs by their sd: widen it first where the runs show it lies
-    checked = check_reported_sd(trajectories, offsets, options.sd_check, earlier=before_chains)
+    control_at = control.xyz[:, :2] if len(control) and _takes(stages.optimizer, "control") else None
+    checked = check_reported_sd(trajectories, offsets, options.sd_check, earlier=before_chains, control_at=control_at)
     notes += checked.summary["notes"]
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
@@ -221,12 +222,12 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
     corrected runs' sd then fades out past the widened spans (:func:`with_fading_margin`)."""
     kwargs = {}
     if checked is not None and checked.widening:
-        if "widening" in inspect.signature(optimizer.optimize).parameters:
+        if _takes(optimizer, "widening"):
             kwargs["widening"] = checked.widening
         else:
             trajectories = checked.trajectories
     if len(control):
-        if "control" in inspect.signature(optimizer.optimize).parameters:
+        if _takes(optimizer, "control"):
             kwargs["control"] = control
         else:
             note = (f"{len(control)} control observations were not used: optimizer "
@@ -244,6 +245,11 @@ def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], o
             log.warning(note)
             notes.append(note)
     return corrected, adjustment
+
+
+def _takes(optimizer, argument: str) -> bool:
+    """Whether the optimizer's ``optimize`` takes ``argument`` (``widening``, ``control``)."""
+    return argument in inspect.signature(optimizer.optimize).parameters
 
 
 def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:

@@ -17,6 +17,11 @@ in the track frame (along, across, up), over ``reach_m`` metres around it, so th
 follows the runs that agree and the corrected run's posterior sd says how little its own GNSS
 was worth there.
 
+A vote of runs is no proof: runs through one portal minutes apart may share a multipath bias,
+and then the run the others outvote is the right one. Nothing relative can tell, so where a vote
+settled a disagreement every run's corrected sd keeps a share of it (``vote_share``), unless
+control nearby settles it instead; the correction itself follows the majority.
+
 The pipeline checks twice. Before the along-track chains, on the matcher's pairs, across the track
 and up only (``along=False``: a pair may sit on an alias along it), so that the chains are not
 anchored on a run's biased portal; a bias seen across is taken to be as large along. After the
@@ -57,6 +62,9 @@ class SdCheckOptions:
     # False: across and up only, for tile pairs that may sit on an along-track alias (the matcher's,
     # before the chains); a bias seen across is then taken to be as large along the track
     along: bool = True
+    # where runs that agree outvoted a run, the share of its disagreement that every run's corrected
+    # sd keeps there: the vote is no evidence against a bias the majority shares (see _vote_margin)
+    vote_share: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -87,18 +95,25 @@ class SdCheck:
     #: per blamed run, the covariance (n_epochs, 3, 3) to add to its *corrected* sd beyond the
     #: widened spans, fading out over ``fade_m`` (see :func:`with_fading_margin`)
     margin: dict[str, np.ndarray] = field(default_factory=dict)
+    #: per run, the covariance (n_epochs, 3, 3) to add to its *corrected* sd where a vote of runs
+    #: settled a disagreement (see :func:`_vote_margin`)
+    vote_margin: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
-                      options: SdCheckOptions | None = None, earlier: SdCheck | None = None) -> SdCheck:
+                      options: SdCheckOptions | None = None, earlier: SdCheck | None = None,
+                      control_at: np.ndarray | None = None) -> SdCheck:
     """Find where the runs' ties and tile offsets convict a run's reported sd, and widen it there.
 
     ``earlier``: a check already made on other tile pairs, or in fewer directions (the matcher's
     pairs, before the along-track chains, across and up): where this one finds nothing, what that
-    one found stands."""
+    one found stands. ``control_at``: where the adjustment takes control points (n, 2): they
+    settle a vote of runs near them, which then keeps no margin (:func:`_vote_margin`)."""
     options = options or SdCheckOptions()
     if earlier is not None:
-        return _where_silent(check_reported_sd(trajectories, offsets, options), earlier)
+        return _settled(_where_silent(check_reported_sd(trajectories, offsets, options), earlier), control_at, options)
+    if control_at is not None:
+        return _settled(check_reported_sd(trajectories, offsets, options), control_at, options)
     summary = {"enabled": options.enabled, "observations": 0, "disagreeing": 0, "runs": {}, "notes": []}
     obs = _pool(trajectories, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
@@ -120,9 +135,10 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     # and dragged 5-6 cm off with the reference (a held-out portal survey: max 9.2 -> 4.7 cm)
     at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m)
     out, widening, margin = dict(trajectories), {}, {}
+    blamed_by = {}
     for run in runs:
         traj = trajectories[run]
-        blamed = bad & _blamed(run, runs, obs, at_odds)
+        blamed = blamed_by[run] = bad & _blamed(run, runs, obs, at_odds)
         # the widening is sized and placed by the sure pairs only: a wrong weak pair in an open
         # cutting (33 cm across on an alias 2.7 m off) widened a run 0.76 m and freed it to follow
         # such pairs (portal_trap 1: max 0.04 -> 0.89 m)
@@ -149,7 +165,79 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
                 f"widened there, so the adjustment follows the runs that agree")
         log.warning(note)
         summary["notes"].append(note)
-    return SdCheck(out, widening, summary, margin)
+    vote = bad & ~obs.weak & (sum(blamed_by.values()) == 1)  # one of the two runs blamed: outvoted
+    vote_margin = {}
+    if vote.any() and options.vote_share > 0:
+        vote_margin = _vote_margin(trajectories, obs.where[vote], options.vote_share * d[vote], options)
+        outvoted = [run for run in runs if (blamed_by[run] & vote).any()]
+        summary["vote"] = _vote_summary(obs, vote, d, outvoted, vote_margin, options)
+        log.warning(summary["vote"]["note"])
+        summary["notes"].append(summary["vote"]["note"])
+    return SdCheck(out, widening, summary, margin, vote_margin)
+
+
+def _vote_margin(trajectories: dict[str, Trajectory], where: np.ndarray, share: np.ndarray,
+                 options: SdCheckOptions) -> dict[str, np.ndarray]:
+    """Per run passing within ``reach_m`` of the places ``where`` (n, 2) that a vote of runs
+    settled, the covariance (n_epochs, 3, 3) that makes its corrected sd cover ``share`` (n, 3, a
+    share of each disagreement there), over ``reach_m`` around them and fading out over ``fade_m``.
+
+    Where runs that agree with each other disagree with one run, the adjustment follows them and
+    each corrected run's posterior sd is theirs, 1-2 cm. But runs through one portal minutes apart
+    see the same satellites off the same walls: a simulated portal biased two of three runs alike
+    by 0.39 m, the third run was blamed, and all three ended 0.39 m off claiming 0.8-3 cm (10-15 %
+    of their epochs beyond 3 sd, worst 34 sd). Relative observations cannot tell that from one
+    biased run; so every run there keeps a share of the disagreement in its corrected sd, half by
+    default, as two runs that disagree with no third to vote would (each is then half of it off).
+    The correction itself is left to follow the majority."""
+    from scipy.spatial import cKDTree
+
+    out = {}
+    for run, traj in trajectories.items():
+        if traj.sd is None:
+            continue
+        dist, at = cKDTree(traj.xyz[:, :2]).query(where)
+        near = dist <= options.reach_m
+        if near.any():
+            extra, _, fading = _widening(traj, traj.time[at[near]], share[near], options.reach_m, options.fade_m,
+                                         as_along=not options.along)
+            out[run] = extra + fading
+    return out
+
+
+def _vote_summary(obs: _Observations, vote: np.ndarray, d: np.ndarray, outvoted: list[str],
+                  margin: dict[str, np.ndarray], options: SdCheckOptions) -> dict:
+    """The runs outvoted and outvoting, the margin each run's corrected sd keeps, and a note."""
+    worst = float(np.linalg.norm(d[vote], axis=1).max())
+    majority = sorted((set(obs.run_a[vote]) | set(obs.run_b[vote])) - set(outvoted))
+    kept = {run: float(np.sqrt(np.einsum("nii->n", m).max())) for run, m in sorted(margin.items())}
+    note = (f"run(s) {', '.join(majority)} outvoted run(s) {', '.join(outvoted)}, which disagree with them by up to "
+            f"{worst:.2f} m: the correction follows the majority, but should it share a GNSS bias there (multipath at "
+            f"one portal, minutes apart) it is off by as much and nothing relative shows it; so every run's corrected "
+            f"sd there keeps {options.vote_share:.0%} of the disagreement (up to {max(kept.values()):.2f} m). "
+            f"Control there would settle it")
+    return {"observations": int(vote.sum()), "outvoted": outvoted, "majority": majority, "worst_disagreement_m": worst,
+            "share": options.vote_share, "corrected_sd_margin_m": kept, "note": note}
+
+
+def _settled(check: SdCheck, control_at: np.ndarray | None, options: SdCheckOptions) -> SdCheck:
+    """``check`` without the vote margin of each stretch of a run that passes within two reaches of
+    a control point: the adjustment follows the control there, not the majority of runs."""
+    if control_at is None or not len(control_at) or not check.vote_margin:
+        return check
+    vote_margin, dropped = {}, 0
+    for run, extra in check.vote_margin.items():
+        near = _near(check.trajectories[run].xyz[:, :2], control_at, 2 * options.reach_m)
+        keep = _stretches_apart(extra, near[:, None, None] * np.eye(3))
+        dropped += int((np.einsum("nii->n", extra) > 0).sum() - keep.sum())
+        if keep.any():
+            vote_margin[run] = np.where(keep[:, None, None], extra, 0.0)
+    if not dropped:
+        return check
+    note = "control points near where runs outvoted a run settle the vote: the corrected sd keeps no margin there"
+    log.info(note)
+    summary = dict(check.summary, notes=[*check.summary["notes"], note])
+    return replace(check, vote_margin=vote_margin, summary=summary)
 
 
 def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
@@ -157,14 +245,11 @@ def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
     where ``check`` widened nothing there. A check on sure pairs measures every direction, so where
     it saw the bias too its widening stands; but the along-track chains may have demoted the pairs
     that showed a bias, and weak pairs alone convict nobody."""
-    from scipy.ndimage import label
-
     widening, margin, out = dict(check.widening), dict(check.margin), dict(check.trajectories)
     notes = list(check.summary["notes"])
     for run, extra in earlier.widening.items():
         mine = widening.get(run, np.zeros_like(extra))
-        stretch = label(np.einsum("nii->n", extra + earlier.margin.get(run, 0.0)) > 0)[0]
-        keep = (stretch > 0) & ~np.isin(stretch, stretch[np.einsum("nii->n", mine) > 0])
+        keep = _stretches_apart(extra + earlier.margin.get(run, 0.0), mine)
         if not keep.any():
             continue
         kept = np.where(keep[:, None, None], extra, 0.0)
@@ -173,8 +258,24 @@ def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
         traj = out[run]  # where ``check`` is silent, its sd is the reported one
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, kept))
         notes += [n for n in earlier.summary["notes"] if n.startswith(f"run {run}:")]
+    vote_margin = dict(check.vote_margin)
+    for run, extra in earlier.vote_margin.items():
+        keep = _stretches_apart(extra, vote_margin.get(run, np.zeros_like(extra)))
+        if keep.any():
+            vote_margin[run] = vote_margin.get(run, 0.0) + np.where(keep[:, None, None], extra, 0.0)
+            if earlier.summary["vote"]["note"] not in notes:
+                notes.append(earlier.summary["vote"]["note"])
     summary = dict(check.summary, earlier=earlier.summary, notes=notes)
-    return SdCheck(out, widening, summary, margin)
+    return SdCheck(out, widening, summary, margin, vote_margin)
+
+
+def _stretches_apart(earlier: np.ndarray, later: np.ndarray) -> np.ndarray:
+    """Epochs of the stretches where covariance ``earlier`` (n, 3, 3) is not zero that share no
+    epoch with where ``later`` is not zero."""
+    from scipy.ndimage import label
+
+    stretch = label(np.einsum("nii->n", earlier) > 0)[0]
+    return (stretch > 0) & ~np.isin(stretch, stretch[np.einsum("nii->n", later) > 0])
 
 
 def widened_sd(sd: np.ndarray, widening: np.ndarray) -> np.ndarray:
@@ -353,7 +454,8 @@ def covariance_at(times: np.ndarray, epochs: np.ndarray, cov: np.ndarray) -> np.
 
 
 def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> dict[str, Trajectory]:
-    """The corrected runs with their sd widened by the check's fading margin.
+    """The corrected runs with their sd widened by the check's fading margin and its vote margin
+    (:func:`_vote_margin`).
 
     A bias does not stop where the ties stop showing it: at a simulated portal, GNSS multipath
     grew over 40 m of open sky that only weak tile pairs saw, and 25 m from the last convicting
@@ -362,10 +464,11 @@ def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> di
     6-17 cm on 13 portal surveys), so only its corrected sd says that its GNSS may still be
     biased there."""
     out = dict(corrected)
-    for run, margin in checked.margin.items():
+    for run in sorted(set(checked.margin) | set(checked.vote_margin)):
         traj, checked_time = corrected.get(run), checked.trajectories[run].time
         if traj is None or traj.sd is None:
             continue
+        margin = checked.margin.get(run, 0.0) + checked.vote_margin.get(run, 0.0)
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, covariance_at(traj.time, checked_time, margin)))
     return out
 

@@ -37,10 +37,10 @@ T0 = {"run_a": 1000.0, "run_b": 2000.0, "run_c": 3000.0}
 
 
 def _survey(runs: tuple[str, ...] = ("run_a", "run_b", "run_c"), biased: bool = True, alias_at: float | None = None,
-            sd: float = SD, bias: float = BIAS):
+            sd: float = SD, bias: float = BIAS, biased_runs: tuple[str, ...] = ("run_a",)):
     """Trajectories, the ok tile pairs (25 m, ties every 2.5 m) and their ties. ``alias_at``: the
     tile pair of runs a and b starting at that chainage sits 0.6 m off along the track."""
-    trajs = {r: _run(r, T0[r], biased and r == "run_a", sd, bias) for r in runs}
+    trajs = {r: _run(r, T0[r], biased and r in biased_runs, sd, bias) for r in runs}
     rng = np.random.default_rng(3)
     offsets = []
     for i, a in enumerate(runs):
@@ -175,7 +175,7 @@ def test_past_the_widened_span_the_corrected_sd_fades_out_not_stops():
     from railtraj.sd_check import with_fading_margin
 
     trajs, offsets, ties = _survey()
-    options = SdCheckOptions()
+    options = SdCheckOptions(vote_share=0.0)  # the vote's margin is another test's
     checked = check_reported_sd(trajs, offsets, options)
     corrected = SplineOptimizer().optimize(trajs, ties, [], widening=checked.widening)
     out = with_fading_margin(corrected, checked)
@@ -193,6 +193,44 @@ def test_past_the_widened_span_the_corrected_sd_fades_out_not_stops():
     for r in trajs:
         np.testing.assert_array_equal(out[r].xyz, corrected[r].xyz)
     np.testing.assert_array_equal(out["run_b"].sd, corrected["run_b"].sd)
+
+
+def test_where_two_runs_biased_alike_outvote_the_third_every_corrected_sd_says_so():
+    """Runs through one portal minutes apart may share a multipath bias. Two of three runs biased
+    alike outvote the third, which is right: the adjustment follows them, and all three end 0.3 m
+    off while their posterior sd claims 2 cm. Nothing relative can show which side is right, so
+    every run's corrected sd keeps half the disagreement there and covers the error within 3 sd;
+    the correction is the majority's, and far from the vote the sd is the posterior's."""
+    from railtraj.sd_check import with_fading_margin
+
+    trajs, offsets, ties = _survey(biased_runs=("run_a", "run_b"))
+    checked = check_reported_sd(trajs, offsets)
+    assert set(checked.summary["runs"]) == {"run_c"}
+    assert checked.summary["vote"]["share"] == 0.5 and "outvoted" in checked.summary["notes"][-1]
+    corrected = SplineOptimizer().optimize(trajs, ties, [], widening=checked.widening)
+    out = with_fading_margin(corrected, checked)
+    options = SdCheckOptions()
+    for r in trajs:
+        s = _chainage(trajs[r])
+        error = np.abs(out[r].xyz[:, 1] - 180000.0)
+        zone = (s > TRAP[0]) & (s < TRAP[1])
+        assert error[zone].max() > 0.8 * BIAS, r  # the vote went the wrong way
+        assert np.all(error <= 3 * out[r].sd[:, 1]), r
+        np.testing.assert_array_equal(out[r].xyz, corrected[r].xyz)
+        far = (s < TRAP[0] - options.reach_m - options.fade_m - 5) | (s > TRAP[1] + options.reach_m + options.fade_m + 5)
+        np.testing.assert_array_equal(out[r].sd[far], corrected[r].sd[far])
+
+
+def test_control_near_where_runs_outvote_one_settles_the_vote():
+    """The adjustment follows control where it has some: a control point in the outvoted stretch
+    leaves no vote margin; one 80 m past its end leaves it."""
+    trajs, offsets, _ = _survey(biased_runs=("run_a", "run_b"))
+    at = lambda s: np.array([[530000.0 + s, 180000.0]])  # noqa: E731
+    settled = check_reported_sd(trajs, offsets, control_at=at(np.mean(TRAP)))
+    assert not settled.vote_margin and "settle the vote" in settled.summary["notes"][-1]
+    assert set(settled.widening) == {"run_c"}  # the check's finding stands
+    far = check_reported_sd(trajs, offsets, control_at=at(290.0))
+    assert set(far.vote_margin) == {"run_a", "run_b", "run_c"}
 
 
 def _weak(o: TileOffset) -> TileOffset:
