@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from railtraj.builtins.spline_optimizer import SplineOptimizer
 from railtraj.data import Ties, TileOffset, Trajectory
@@ -157,6 +158,18 @@ def test_one_wrong_tile_pair_convicts_nobody():
     assert not checked.widening and not checked.summary["runs"]
 
 
+@pytest.mark.parametrize("sd, bias, blamed", [(SD, BIAS, {"run_a"}), (0.075, 1.2, set())])
+def test_one_pair_far_off_across_the_track_convicts_alone_where_gnss_is_reported(sd, bias, blamed):
+    """One tile pair shows run a's bias (a portal's only cutting pair); runs b and c agree. Across
+    the track no along-track alias moves a pair, so at twice the limit it convicts alone where
+    both runs report GNSS-quality sd; where they report an INS drift model's (7.5 cm per axis),
+    not even at 11 sd."""
+    trajs, offsets, _ = _survey(sd=sd, bias=bias)
+    near_trap = lambda o: TRAP[0] - 60 < float(o.tile_a) < TRAP[1] + 35  # noqa: E731
+    lone = [o for o in offsets if o.run_a != "run_a" or not near_trap(o) or (o.run_b, o.tile_a) == ("run_b", "125")]
+    assert set(check_reported_sd(trajs, lone).summary["runs"]) == blamed
+
+
 def test_a_biased_reference_run_is_blamed_alone_where_its_tile_pairs_are_apart(monkeypatch):
     """The global pipeline pairs every run with the reference only. Its bias shows against run b
     in one tile pair and against run c in another 26 m further on, beyond one reach: run b must
@@ -228,6 +241,7 @@ def test_control_near_where_runs_outvote_one_settles_the_vote():
     at = lambda s: np.array([[530000.0 + s, 180000.0]])  # noqa: E731
     settled = check_reported_sd(trajs, offsets, control_at=at(np.mean(TRAP)))
     assert not settled.vote_margin and "settle the vote" in settled.summary["notes"][-1]
+    assert settled.summary["vote"]["settled_by_control"] and not settled.summary["vote"]["corrected_sd_margin_m"]
     assert set(settled.widening) == {"run_c"}  # the check's finding stands
     far = check_reported_sd(trajs, offsets, control_at=at(290.0))
     assert set(far.vote_margin) == {"run_a", "run_b", "run_c"}
