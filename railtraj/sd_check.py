@@ -124,7 +124,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         obs = _across_and_up(obs, trajectories)
     reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
                                                                             (obs.run_b, obs.time_b))]
-    z, d = _z(obs, reported, options.max_weak_sd_m)
+    z, d, sd = _z(obs, reported, options.max_weak_sd_m)
     gnss = np.maximum(*(np.linalg.norm(sd[:, :2], axis=1) for sd in reported)) <= options.gnss_sd_m
     limit = np.where(gnss, options.max_z_gnss, options.max_z)
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
@@ -138,7 +138,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     # run with the reference only, and a biased reference showed against run b in one tile pair
     # and against run c in another 26-50 m on; counted within one reach, run b was blamed too
     # and dragged 5-6 cm off with the reference (a held-out portal survey: max 9.2 -> 4.7 cm)
-    at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m)
+    at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m, np.linalg.norm(d, axis=1), limit * sd)
     out, widening, margin = dict(trajectories), {}, {}
     blamed_by = {}
     for run in runs:
@@ -355,10 +355,12 @@ def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory]) -> _
     return replace(obs, cov=cov)
 
 
-def _z(obs: _Observations, reported: list[np.ndarray], max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _z(obs: _Observations, reported: list[np.ndarray],
+       max_weak_sd_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each observation's disagreement in sd of the two runs' reported sd (``reported``: run a's
     and run b's, (n, 3) each, from :func:`_reported_sd`) and its own covariance, and the
-    disagreement itself, both in the directions the observation constrains."""
+    disagreement itself, both in the directions the observation constrains; third, the largest
+    sd of that covariance in those directions (how large a disagreement it could have missed)."""
     vals, vecs = np.linalg.eigh(obs.cov)
     keep = (np.sqrt(np.maximum(vals, 0.0)) <= max_weak_sd_m).astype(float)
     project = np.einsum("nik,nk,njk->nij", vecs, keep, vecs)
@@ -369,9 +371,10 @@ def _z(obs: _Observations, reported: list[np.ndarray], max_weak_sd_m: float) -> 
         given = np.isfinite(sd).all(axis=1)
         known &= given
         var[given] += np.einsum("ni,ij->nij", sd[given] ** 2, np.eye(3))
-    var = np.einsum("nik,nkl,njl->nij", project, var, project) + (np.eye(3) - project)
-    z = np.sqrt(np.einsum("ni,ni->n", d, np.linalg.solve(var, d[..., None])[..., 0]))
-    return np.where(known, z, 0.0), d
+    var = np.einsum("nik,nkl,njl->nij", project, var, project)
+    sd = np.sqrt(np.linalg.eigvalsh(var)[:, -1])
+    z = np.sqrt(np.einsum("ni,ni->n", d, np.linalg.solve(var + (np.eye(3) - project), d[..., None])[..., 0]))
+    return np.where(known, z, 0.0), d, np.where(known, sd, np.inf)
 
 
 def _reported_sd(trajectories: dict[str, Trajectory], runs: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -425,7 +428,8 @@ def _near(where: np.ndarray, points: np.ndarray, reach_m: float) -> np.ndarray:
     return cKDTree(points).query_ball_point(where, reach_m, return_length=True) > 0
 
 
-def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m: float) -> dict[str, np.ndarray]:
+def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m: float, size: np.ndarray,
+                  missed: np.ndarray) -> dict[str, np.ndarray]:
     """Per run, at each observation's place: how many other runs it disagrees with within
     ``reach_m``, less how many it agrees with there (sure observations, none disagreeing).
 
@@ -434,13 +438,28 @@ def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m:
     alone, and the reference with it alone, while the reference agrees with the third run.
     Counting disagreements only blamed both (a held-out survey's run b, 0.33 m off along the
     track at a portal: the reference was widened as far, and the adjustment kept run b 0.25 m
-    off claiming 5 cm)."""
+    off claiming 5 cm).
+
+    An observation agrees only with a disagreement (``size``, m) at least as large as the one it
+    could have missed (``missed``: the limit times its largest sd). Where the runs report 0.4 m,
+    a pair within the limit says nothing about a 0.3 m bias: on portal_trap 2 such a pair, 25 m
+    from the biased run's portal, had it "agree" with the third run, and its partner was blamed."""
+    from scipy.spatial import cKDTree
+
     count = {r: np.zeros(len(obs.d)) for r in runs}
     for i, r in enumerate(runs):
         for q in runs[i + 1:]:
             of_pair = ((obs.run_a == r) & (obs.run_b == q)) | ((obs.run_a == q) & (obs.run_b == r))
             disagree = _near(obs.where, obs.where[bad & of_pair], reach_m)
-            agree = _near(obs.where, obs.where[of_pair & ~bad & ~obs.weak], reach_m) & ~disagree
+            # only where an observation disagrees does the count matter (blame is of those)
+            agreeing, at = np.flatnonzero(of_pair & ~bad & ~obs.weak), np.flatnonzero(bad)
+            agree = np.zeros(len(obs.d), bool)
+            if len(agreeing) and len(at):
+                near = cKDTree(obs.where[at]).sparse_distance_matrix(cKDTree(obs.where[agreeing]), reach_m,
+                                                                     output_type="ndarray")
+                sees = missed[agreeing][near["j"]] <= size[at][near["i"]]
+                agree[at[near["i"][sees]]] = True
+            agree &= ~disagree
             count[r] += disagree.astype(float) - agree
             count[q] += disagree.astype(float) - agree
     return count

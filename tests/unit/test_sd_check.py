@@ -170,6 +170,18 @@ def test_one_pair_far_off_across_the_track_convicts_alone_where_gnss_is_reported
     assert set(check_reported_sd(trajs, lone).summary["runs"]) == blamed
 
 
+def test_a_pair_whose_runs_report_too_large_an_sd_to_see_the_bias_agrees_with_nobody():
+    """Where the runs report 0.4 m, a pair within the limit says nothing of a 0.3 m bias. Run a
+    "agreeing" with run c there, 25 m past its bias, had run b blamed for run a's bias alone."""
+    trajs, offsets, _ = _survey()
+    for r in ("run_a", "run_c"):
+        trajs[r].sd[_chainage(trajs[r]) > TRAP[1]] = 0.4
+    kept = {("run_a", "run_b", "100"), ("run_a", "run_b", "125"), ("run_a", "run_c", "175")}
+    summary = check_reported_sd(trajs, [o for o in offsets if (o.run_a, o.run_b, o.tile_a) in kept]).summary
+    assert set(summary["runs"]) == {"run_a", "run_b"}  # two runs only can say
+    assert "vote" not in summary  # nowhere was run b outvoted
+
+
 def test_a_biased_reference_run_is_blamed_alone_where_its_tile_pairs_are_apart(monkeypatch):
     """The global pipeline pairs every run with the reference only. Its bias shows against run b
     in one tile pair and against run c in another 26 m further on, beyond one reach: run b must
