@@ -146,9 +146,11 @@ class Pair:
     rate_var: float | None = None
     # (k,) m: how wide each candidate's peak is at its top (Peaks.width; None: one step)
     width: np.ndarray | None = None
-    # whether its along-track evidence is marks whose profile shows one peak (a box, a stain):
-    # its ``period`` then reaches the profile's nearer end (see _candidates)
+    # whether its along-track evidence is marks whose profile shows one peak (a box, a stain)
     lone_mark: bool = False
+    # (2,) for a lone mark: the along-track offsets of its profile's two ends, past which lies
+    # the nearest alias it cannot have shown (see _candidates)
+    profile_ends: np.ndarray | None = None
 
 
 class Peaks(NamedTuple):
@@ -320,12 +322,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     if edges is not None and found is not edges:
         found = found._replace(shift=_on_edges(found, edges.shift, float(prof["step"])))
     shift, movable, m, period, width = found
-    # marks are no repeated structure: their profile, searched over the whole window, shows every
-    # alias there is, so an alias it shows no peak for lies beyond the profile's nearer end
     lone_mark = found is not edges and prof.get("source") == "marks" and len(shift) == 1
-    if lone_mark:
-        ts_end = prof["start"] + prof["step"] * (len(prof["fitness"]) - 1)
-        period = max(period, min(shift[0] - prof["start"], ts_end - shift[0]))
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
     axis = np.asarray(pw["axis"], float)
@@ -337,12 +334,16 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     # the profile is measured about the matcher's curve, fitted at its own choice, so it favours
     # that choice; a misfit ratio is therefore worth at most ``max_evidence``
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
+    # marks are no repeated structure: their profile shows every alias within its reach, so an
+    # alias it shows no peak for lies past one of its ends
+    ends = o.d @ direction + np.array([prof["start"], prof["start"] + prof["step"] * (len(prof["fitness"]) - 1)]) * (
+        axis @ direction) if lone_mark else None
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
-                rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark)
+                rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark, profile_ends=ends)
 
 
 def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
@@ -613,9 +614,13 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
       (``Pair.movable``; a flat profile's top sample is no alias).
 
     A pair resting on one mark (``Pair.lone_mark``: a box, a stain) is charged no alias within
-    its profile, which spans the whole search window: the unseen alias lies beyond the
-    profile's nearer end (``Pair.period``), so the mark is fixed only where the search window
-    covers the prediction (2.6 sd of it at least, for ``min_margin`` 16). Session 30 fixed
+    its profile, which spans the whole search window: the unseen alias lies just past the
+    profile's end nearest the prediction (``Pair.profile_ends``), so the mark is fixed only where
+    the search window covers the prediction (2.6 sd of it at least, for ``min_margin`` 16).
+    Session 36 charged the nearer end whichever side it lay: a held-out feature-poor tunnel's
+    boxes near tile edges, their profiles 0.9-1.7 m long on one side and 3 m on the other, the
+    predictions 0.4-0.9 m off towards the long side (sd 0.3-0.4 m), stayed unfixed (inter-run
+    0.597 m; fixed, 0.032 m). Session 30 fixed
     such a pair only where the chain predicted it to 0.167 m: fixed 350 m from other
     evidence, one box's correction, spread over the gaps, had moved the runs apart where the
     drift turned. The adjustment now follows the drift between such ties: on 53 simulated
@@ -668,6 +673,8 @@ def _resolve_chain(chain: list[Pair], options: AlongTrackOptions, walks: np.ndar
             k = np.round((p.u[best] - mu[i]) / period)
             k = k if k != 0 else np.sign(p.u[best] - mu[i]) or 1.0
             unseen = (p.u[best] - k * period - mu[i]) ** 2 / total + options.max_evidence
+            if p.profile_ends is not None:  # a lone mark's: just past the profile's end nearest the prediction
+                unseen = np.min((p.profile_ends - mu[i]) ** 2) / total + options.max_evidence
             margin = float(min(runner_up, unseen) - cost[best])
             near = (p.u[best] - mu[i]) ** 2 <= 9.0 * total and p.sd <= options.max_pair_sd
             # peaks closer than the shortest period cannot both be aliases: one is the
