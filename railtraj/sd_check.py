@@ -124,7 +124,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         obs = _across_and_up(obs, trajectories)
     reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
                                                                             (obs.run_b, obs.time_b))]
-    z, d, sd = _z(obs, reported, options.max_weak_sd_m)
+    z, d, obs_sd = _z(obs, reported, options.max_weak_sd_m)
     gnss = np.maximum(*(np.linalg.norm(sd[:, :2], axis=1) for sd in reported)) <= options.gnss_sd_m
     limit = np.where(gnss, options.max_z_gnss, options.max_z)
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
@@ -138,7 +138,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     # run with the reference only, and a biased reference showed against run b in one tile pair
     # and against run c in another 26-50 m on; counted within one reach, run b was blamed too
     # and dragged 5-6 cm off with the reference (a held-out portal survey: max 9.2 -> 4.7 cm)
-    at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m, np.linalg.norm(d, axis=1), limit * sd)
+    at_odds = _runs_at_odds(runs, obs, bad, 2 * options.reach_m, np.linalg.norm(d, axis=1), limit * obs_sd)
     out, widening, margin = dict(trajectories), {}, {}
     blamed_by = {}
     for run in runs:
@@ -193,8 +193,8 @@ def _lone_across(obs: _Observations, trajectories: dict[str, Trajectory], report
     convicted and the run kept its bias claiming 9 mm (13 % of its epochs beyond 3 sd, worst 30).
     Only after the chains: before them the matcher's pairs at a portal are mostly ambiguous, so
     a lone pair has no sure pairs around it to say which run is at odds. On portal_trap 2 one
-    `ok` pair, 20 m into the tunnel, blamed the right run's partner: the biased run "agreed" with
-    the third run 25 m further on, where both report 0.4 m. The maximum grew 4.9 -> 6.9 cm."""
+    `ok` pair, 20 m into the tunnel, blamed the biased run's partner (the biased run "agreed"
+    with the third run 25 m further on, where both report 0.4 m): maximum 4.9 -> 6.9 cm."""
     across = _across_and_up(obs, trajectories)
     return (_z(across, reported, options.max_weak_sd_m)[0] > options.lone_z * limit) & ~obs.weak
 
