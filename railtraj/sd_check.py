@@ -170,7 +170,9 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
                 f"widened there, so the adjustment follows the runs that agree")
         log.warning(note)
         summary["notes"].append(note)
-    vote = bad & ~obs.weak & (sum(blamed_by.values()) == 1)  # one of the two runs blamed: outvoted
+    # settled by other runs: one run of the two blamed (outvoted), or both where a third run was
+    # there to side with one of them (two against two: the unblamed allies of a blamed run decide)
+    vote = bad & ~obs.weak & ((sum(blamed_by.values()) == 1) | (len(runs) > 2))
     vote_margin = {}
     if vote.any() and options.vote_share > 0:
         vote_margin = _vote_margin(trajectories, obs.where[vote], options.vote_share * d[vote], options)
@@ -234,11 +236,11 @@ def _vote_summary(obs: _Observations, vote: np.ndarray, d: np.ndarray, outvoted:
     worst = float(np.linalg.norm(d[vote], axis=1).max())
     majority = sorted((set(obs.run_a[vote]) | set(obs.run_b[vote])) - set(outvoted))
     kept = _largest_sd(margin)
-    note = (f"run(s) {', '.join(majority)} outvoted run(s) {', '.join(outvoted)}, which disagree with them by up to "
-            f"{worst:.2f} m: the correction follows the majority, but should it share a GNSS bias there (multipath at "
-            f"one portal, minutes apart) it is off by as much and nothing relative shows it; so every run's corrected "
-            f"sd there keeps {options.vote_share:.0%} of the disagreement (up to {max(kept.values(), default=0.0):.2f} m). "
-            f"Control there would settle it")
+    note = (f"run(s) {', '.join(outvoted)} disagree with run(s) {', '.join(majority) or 'among them'} by up to "
+            f"{worst:.2f} m and the runs that agree decide the correction there, but should they share a GNSS bias "
+            f"(multipath at one portal, minutes apart) it is off by as much and nothing relative shows it; so every "
+            f"run's corrected sd there keeps {options.vote_share:.0%} of the disagreement (up to "
+            f"{max(kept.values(), default=0.0):.2f} m). Control there would settle it")
     return {"observations": int(vote.sum()), "outvoted": outvoted, "majority": majority, "worst_disagreement_m": worst,
             "share": options.vote_share, "corrected_sd_margin_m": kept, "note": note}
 
