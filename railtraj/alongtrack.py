@@ -340,8 +340,10 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     evidence = np.minimum(9.0 * (np.log(m / m.min()) / np.log(options.evidence_ratio)) ** 2, options.max_evidence)
     # marks are no repeated structure: their profile shows every alias within its reach, so an
     # alias it shows no peak for lies past one of its ends
-    ends = o.d @ direction + np.array([prof["start"], prof["start"] + prof["step"] * (len(prof["fitness"]) - 1)]) * (
-        axis @ direction) if lone_mark else None
+    ends = None
+    if lone_mark:
+        reach = prof["start"] + np.array([0.0, prof["step"] * (len(prof["fitness"]) - 1)])
+        ends = o.d @ direction + reach * (axis @ direction)
     return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
                 _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
@@ -1069,19 +1071,19 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
             info["demoted"] = "along-track alias not resolved jointly"
         window = float(o.info.get("window", 3.0))
         return replace(o, status="ambiguous" if o.status == "ok" else o.status,
-                       cov=_marks_floor(o, fit_cov + window**2 * np.outer(axis, axis)),
+                       cov=_across_floor(o, fit_cov + window**2 * np.outer(axis, axis)),
                        ties=Ties.empty(o.run_a, o.run_b), info=info)
     if abs(shift) < 1e-9 and o.status == "ok" and not coarse:  # its ties as they are, its sd widened
-        return replace(o, cov=_marks_floor(o, o.cov + alias_var * np.outer(axis, axis)), info=info)
+        return replace(o, cov=_across_floor(o, o.cov + alias_var * np.outer(axis, axis)), info=info)
     d = o.d + shift * axis
     info["resolved"] = "joint" if o.status != "ok" else "moved"
     info["time_a"] = _time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis)
-    return replace(o, d=d, cov=_marks_floor(o, fit_cov + alias_var * np.outer(axis, axis)),
+    return replace(o, d=d, cov=_across_floor(o, fit_cov + alias_var * np.outer(axis, axis)),
                    status=COARSE if coarse else "ok",
                    ties=Ties.empty(o.run_a, o.run_b), info=info)
 
 
-def _marks_floor(o: TileOffset, cov: np.ndarray) -> np.ndarray:
+def _across_floor(o: TileOffset, cov: np.ndarray) -> np.ndarray:
     """``cov`` with its across and up sd raised to :data:`PAIR_ACROSS_SD`, and to
     :data:`MARKS_ACROSS_SD` where the pair's along-track offset rests on marks alone
     (:func:`_on_few_marks`): its curve's across and up come from windows fitted across a

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -112,10 +112,9 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     one found stands. ``control_at``: where the adjustment takes control points (n, 2): they
     settle a vote of runs near them, which then keeps no margin (:func:`_vote_margin`)."""
     options = options or SdCheckOptions()
-    if earlier is not None:
-        return _settled(_where_silent(check_reported_sd(trajectories, offsets, options), earlier), control_at, options)
-    if control_at is not None:
-        return _settled(check_reported_sd(trajectories, offsets, options), control_at, options)
+    if earlier is not None or control_at is not None:
+        check = check_reported_sd(trajectories, offsets, options)
+        return _settled(check if earlier is None else _where_silent(check, earlier), control_at, options)
     summary = {"enabled": options.enabled, "observations": 0, "disagreeing": 0, "runs": {}, "notes": []}
     obs = _pool(trajectories, offsets, options) if options.enabled and len(trajectories) > 1 else None
     if obs is None:
@@ -129,8 +128,10 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     limit = np.where(gnss, options.max_z_gnss, options.max_z)
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
     bad = _corroborated(obs, z > limit, 2 * options.reach_m)
-    if options.along:
-        bad |= gnss & _lone_across(obs, trajectories, reported, limit, options)
+    if options.along:  # across and up the disagreement is no larger than in every direction
+        candidate = gnss & ~obs.weak & (z > options.lone_z * limit)
+        bad[candidate] |= _lone_across(_subset(obs, candidate), trajectories, [sd[candidate] for sd in reported],
+                                       limit[candidate], options)
     bad &= _near(obs.where, obs.where[bad & ~obs.weak], 2 * options.reach_m)  # weak pairs never convict alone
     summary.update(observations=int(len(z)), disagreeing=int(bad.sum()))
     runs = sorted(set(obs.run_a) | set(obs.run_b))
@@ -199,6 +200,11 @@ def _lone_across(obs: _Observations, trajectories: dict[str, Trajectory], report
     with the third run 25 m further on, where both report 0.4 m): maximum 4.9 -> 6.9 cm."""
     across = _across_and_up(obs, trajectories)
     return (_z(across, reported, options.max_weak_sd_m)[0] > options.lone_z * limit) & ~obs.weak
+
+
+def _subset(obs: _Observations, mask: np.ndarray) -> _Observations:
+    """The observations where ``mask`` holds."""
+    return _Observations(*(getattr(obs, f.name)[mask] for f in fields(_Observations)))
 
 
 def _vote_margin(trajectories: dict[str, Trajectory], where: np.ndarray, share: np.ndarray,
