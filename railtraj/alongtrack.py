@@ -250,10 +250,14 @@ def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin
     On a simulated survey whose runs drifted 2.5 m (4 m apart), a run's pairs stayed unresolved
     over 200 m and the runs 1.26 m apart; 60 surveys of drifts up to 1.5 m reached 2.6 m at most."""
     rows = [r for r in report if "predicted_m" in r]
+    window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
+    # a prediction vaguer than the window says nothing of where the runs are (a chain with no
+    # sure pair: "0.46 +- 1000 m apart" asked for a 2 km search window on a sparse scan)
+    informative = np.array([r["predicted_sd_m"] for r in rows]) <= window if rows else np.zeros(0, bool)
+    rows, window = [r for r, keep in zip(rows, informative, strict=True) if keep], window[informative]
     if not rows:
         return None
     reach = np.array([abs(r["predicted_m"]) + 2.0 * r["predicted_sd_m"] for r in rows])
-    window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
     k = int(np.argmax(reach - window))
     if reach[k] <= window[k]:
         return None

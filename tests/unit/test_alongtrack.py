@@ -495,6 +495,8 @@ def test_runs_further_apart_than_the_matcher_searched_are_reported(monkeypatch, 
     assert note is not None and "matcher.max_misalignment=" in note and "pipeline.max_misalignment_m=" in note
     suggested = float(note.rsplit("=", 1)[1])
     assert suggested >= peak
+    vague = [dict(r, predicted_sd_m=1000.0) for r in report if "predicted_m" in r]  # no sure pair anywhere
+    assert beyond_reach_note(vague, out, 3.0) is None
     for k, o in enumerate(out):
         if o.status in ("ok", "coarse"):
             assert abs(o.d[0] - along(s[k])) < 0.01, (k, o.status, o.d[0] - along(s[k]))
