@@ -42,6 +42,7 @@ class PlaneTarget:
     normal: np.ndarray  # (m, 3) unit normal of that block
     weight: np.ndarray  # (m,) 0 for blocks that are not planar or too sparse, else 1
     normal_var: np.ndarray  # (m,) variance of the fitted normal's tilt (rad^2), from the fit
+    line_like: np.ndarray  # (m,) the block's points lie along a line: its normal may turn about it
     tree: cKDTree  # on the voxel centroids
     lo: np.ndarray  # bounding box of the reference points
     hi: np.ndarray
@@ -115,6 +116,9 @@ class NearestTracker:
 #: raw points a plane block needs, and the largest surface variation it may have (build_target)
 MIN_BLOCK_POINTS = 6
 MAX_CURVATURE = 0.15
+#: a block whose second spread is below this share of its first holds a line of points, not a
+#: plane (filled_target)
+MIN_SPREAD_RATIO = 0.05
 
 
 def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = MIN_BLOCK_POINTS,
@@ -131,17 +135,18 @@ def build_target(xyz: np.ndarray, voxel: float = 0.05, min_points: int = MIN_BLO
     lo, hi = extent(xyz)
     grid = voxelize(xyz, voxel)
     n, mean, cov = block_covariance(xyz, grid)
-    planar, normal, normal_var = _block_planes(n, cov, min_points, max_curvature)
-    return PlaneTarget(grid, mean, normal, planar.astype(float), normal_var, cKDTree(grid.xyz), lo, hi)
+    planar, normal, normal_var, line_like = _block_planes(n, cov, min_points, max_curvature)
+    return PlaneTarget(grid, mean, normal, planar.astype(float), normal_var, line_like, cKDTree(grid.xyz), lo, hi)
 
 
 def _block_planes(n: np.ndarray, cov: np.ndarray, min_points: int,
-                  max_curvature: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Whether each block (``n`` points, covariance ``cov``) is a plane, its normal and the
-    normal's tilt variance."""
+                  max_curvature: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each block (``n`` points, covariance ``cov``) is a plane, its normal, the
+    normal's tilt variance, and whether its points lie along a line (see filled_target)."""
     evals, normal = smallest_eigen(cov)
     curvature = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12)
-    return (n >= min_points) & (curvature <= max_curvature), normal, tilt_variance(n, evals)
+    line_like = evals[:, 1] < MIN_SPREAD_RATIO * evals[:, 2]
+    return (n >= min_points) & (curvature <= max_curvature), normal, tilt_variance(n, evals), line_like
 
 
 def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = MIN_BLOCK_POINTS,
@@ -156,15 +161,23 @@ def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = MIN_BL
     mm with these planes. Only the windows' across-and-up fits use them: in the vote checks and
     along-track profiles, flat far walls that fit every alias made a 50 m-tile survey's pairs
     ambiguous (0.012 -> 0.67 m).
+
+    Sparser still, a block holds one point of each of a few profiles: a line along the track, as
+    flat as a plane (its surface variation is nil) but with a normal free to turn about it. At
+    120 points per profile (17-40 cm apart along each) such lines were 18-94 % of the planar
+    blocks, and windows sat 9-26 cm off across with a claimed sd of 3-8 mm; they get the plane of
+    the block twice the size too (within 7 mm), or none. Denser scans have no such blocks.
     """
     block_points = neighbour_sums(target.grid, target.grid.count[:, None].astype(float))[:, 0]
-    sparse = np.flatnonzero(block_points < min_points)  # blocks dropped for their shape stay dropped
-    if not len(sparse):
+    line = target.line_like & (target.weight > 0)
+    redo = np.flatnonzero((block_points < min_points) | line)  # blocks dropped for their shape stay dropped
+    if not len(redo):
         return target
-    found, mean, normal, var = _coarse_planes(xyz, target.grid, sparse, min_points, max_curvature)
-    taken = sparse[found]
+    found, mean, normal, var = _coarse_planes(xyz, target.grid, redo, min_points, max_curvature)
+    taken = redo[found]
     anchor, normals, weight, normal_var = (target.anchor.copy(), target.normal.copy(), target.weight.copy(),
                                            target.normal_var.copy())
+    weight[line] = 0.0
     anchor[taken], normals[taken], weight[taken], normal_var[taken] = mean, normal, 1.0, var
     return replace(target, anchor=anchor, normal=normals, weight=weight, normal_var=normal_var)
 
@@ -182,7 +195,8 @@ def _coarse_planes(xyz: np.ndarray, grid: VoxelGrid, voxels: np.ndarray, min_poi
     coarse = voxelize(xyz, size, origin)
     slot = np.searchsorted(coarse.keys, pack(voxel_coords(grid.xyz[voxels], size, origin)))
     n, mean, cov = block_covariance(xyz, coarse)
-    found, normal, normal_var = _block_planes(n[slot], cov[slot], min_points, max_curvature)
+    planar, normal, normal_var, line_like = _block_planes(n[slot], cov[slot], min_points, max_curvature)
+    found = planar & ~line_like
     return found, mean[slot][found], normal[found], normal_var[found]
 
 
