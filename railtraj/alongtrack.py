@@ -253,7 +253,7 @@ def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin
     window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
     # a prediction vaguer than the window says nothing of where the runs are (a chain with no
     # sure pair: "0.46 +- 1000 m apart" asked for a 2 km search window on a sparse scan)
-    informative = np.array([r["predicted_sd_m"] for r in rows]) <= window if rows else np.zeros(0, bool)
+    informative = np.array([r["predicted_sd_m"] for r in rows], float) <= window
     rows, window = [r for r, keep in zip(rows, informative, strict=True) if keep], window[informative]
     if not rows:
         return None

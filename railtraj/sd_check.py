@@ -455,16 +455,16 @@ def _runs_at_odds(runs: list[str], obs: _Observations, bad: np.ndarray, reach_m:
     from scipy.spatial import cKDTree
 
     count = {r: np.zeros(len(obs.d)) for r in runs}
+    at = np.flatnonzero(bad)  # only where an observation disagrees does the count matter (blame is of those)
+    at_tree = cKDTree(obs.where[at]) if len(at) else None
     for i, r in enumerate(runs):
         for q in runs[i + 1:]:
             of_pair = ((obs.run_a == r) & (obs.run_b == q)) | ((obs.run_a == q) & (obs.run_b == r))
             disagree = _near(obs.where, obs.where[bad & of_pair], reach_m)
-            # only where an observation disagrees does the count matter (blame is of those)
-            agreeing, at = np.flatnonzero(of_pair & ~bad & ~obs.weak), np.flatnonzero(bad)
+            agreeing = np.flatnonzero(of_pair & ~bad & ~obs.weak)
             agree = np.zeros(len(obs.d), bool)
-            if len(agreeing) and len(at):
-                near = cKDTree(obs.where[at]).sparse_distance_matrix(cKDTree(obs.where[agreeing]), reach_m,
-                                                                     output_type="ndarray")
+            if len(agreeing) and at_tree is not None:
+                near = at_tree.sparse_distance_matrix(cKDTree(obs.where[agreeing]), reach_m, output_type="ndarray")
                 sees = missed[agreeing][near["j"]] <= size[at][near["i"]]
                 agree[at[near["i"][sees]]] = True
             agree &= ~disagree

@@ -171,7 +171,7 @@ def filled_target(xyz: np.ndarray, target: PlaneTarget, min_points: int = MIN_BL
     """
     block_points = neighbour_sums(target.grid, target.grid.count[:, None].astype(float))[:, 0]
     line = target.line_like & (target.weight > 0)
-    redo = np.flatnonzero((block_points < min_points) | line)  # blocks dropped for their shape stay dropped
+    redo = np.flatnonzero((block_points < min_points) | line)  # blocks dropped for their curvature stay dropped
     if not len(redo):
         return target
     found, mean, normal, var = _coarse_planes(xyz, target.grid, redo, min_points, max_curvature)
