@@ -24,7 +24,7 @@ from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.consensus import boxes_overlap, failed
 from railtraj.matching.resolve import VoteSettings, resolve
-from railtraj.matching.spacing import radius_scale
+from railtraj.matching.spacing import point_spacing, radius_scale
 from railtraj.matching.voting import pair_translations
 
 
@@ -112,6 +112,7 @@ class VotingMatcher:
         """Resolve the votes (dense check, refinement) and record the matcher's total time."""
         refiner = self.icp.match if self.icp is not None else None
         scale, info["profile_spacing"] = radius_scale(tile_a, tile_b)
+        info["point_spacing"] = point_spacing(tile_a, tile_b)
         s = self.settings
         if scale > 1.0:  # sparser scan profiles than the defaults were set for: radii follow them
             s = replace(s, fitness_radius=s.fitness_radius * scale, target_voxel=s.target_voxel * scale,

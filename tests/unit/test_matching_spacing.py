@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from railtraj.data import PointTile
+from railtraj.data import PointTile, TileOffset
 from railtraj.matching.spacing import (
     DESIGN_SPACING,
+    point_spacing,
     profile_sampling,
     radius_scale,
+    sparse_profiles_note,
 )
 
 
@@ -47,6 +49,20 @@ def test_radius_scale_follows_the_area_each_point_of_a_sparse_profile_samples():
     scale, gap = radius_scale(_profiles(0.04, per_profile=100))
     assert scale == pytest.approx(np.sqrt(0.04 * 2 * np.pi * 3.0 / 100) / DESIGN_SPACING, rel=0.1)
     assert gap == pytest.approx(0.04, rel=0.1)  # the profile gap still places edges along the track
+
+
+def _pair(status: str, tile: PointTile, other: PointTile) -> TileOffset:
+    return TileOffset("a", "b", "t", "t", status=status, info={"point_spacing": point_spacing(tile, other)})
+
+
+def test_a_survey_of_sparse_profiles_is_told_so_and_a_dense_one_is_not():
+    sparse, dense = _profiles(0.04, per_profile=100), _profiles(0.04)  # points 0.19 and 0.04 m apart on each circle
+    assert point_spacing(dense, sparse) == pytest.approx(2 * np.pi * 3.0 / 100, rel=0.1)  # the coarser tile's
+    note = sparse_profiles_note([_pair("ok", sparse, sparse), _pair("ambiguous", sparse, sparse),
+                                 _pair("no_overlap", sparse, dense)])
+    assert "0.19 m apart along each profile" in note and "1 of 3" in note
+    assert sparse_profiles_note([_pair("ok", dense, dense), _pair("ok", dense, dense), _pair("ok", sparse, dense)]) is None
+    assert sparse_profiles_note([TileOffset("a", "b", "t", "t")]) is None  # nothing measured: nothing said
 
 
 def test_too_few_points_say_nothing():
