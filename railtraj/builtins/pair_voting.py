@@ -39,7 +39,7 @@ class VotingOptions:
     min_check_votes: int = 2  # fewer than min_inliers but this many: checked densely, at best ambiguous
     n_peaks: int = 5  # distinct vote peaks checked on the dense clouds
     check_points: int = 20_000  # raw points of tile b for that check
-    min_fitness: float = 0.5  # share of points within 5 cm at the best peak; below: no_overlap
+    min_fitness: float = 0.5  # share of points on run a's surface at the best peak (Fit.overlap); below: no_overlap
     ambiguity_ratio: float = 0.8  # misfit of the best / of a distinct rival peak; above: ambiguous
     max_sd: float = 0.01  # m; sd of the offset in any direction above this: degenerate
     refine: bool = True  # point-to-plane refinement (windows along the track, or one rigid fit)
@@ -118,6 +118,10 @@ class VotingMatcher:
             s = replace(s, fitness_radius=s.fitness_radius * scale, target_voxel=s.target_voxel * scale,
                         inlier_radius=s.inlier_radius * scale)
             info["radius_scale"] = scale
+        # a sparse scan samples a wall in rows as far apart as a profile's points: run b's rows lie
+        # between run a's, half that from the nearer, and fit where run a's planes are
+        # (PlaneTarget.fits; no further than the fitness radius on dense scans: nothing changes)
+        s = replace(s, surface_reach=float(np.nan_to_num(np.hypot(point_spacing(tile_a) / 2, s.target_voxel / 2))))
         out = resolve(tile_a, kp_a, tile_b, kp_b, votes, s, refiner, info)
         out.info["timings"]["total"] = time.perf_counter() - t0
         return out

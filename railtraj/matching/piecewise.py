@@ -355,8 +355,9 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     overlap (a diagonal tile corner) must not spread the grid so that most windows fall where
     there is nothing to fit (always trimming cost a dense survey a pair it had).
     ``tau`` is the matcher's fitness radius, which follows the scan's profile spacing; each
-    window's fitness is counted within it too (at a fixed 5 cm, a 16 cm profile gap left every
-    window of a fast run below 0.5 and its pair ``degenerate``). ``across_target``
+    window's overlap (:attr:`railtraj.matching.refine.Fit.overlap`, at least 0.5) is counted
+    within it too (at a fixed 5 cm, a 16 cm profile gap left every window of a fast run below
+    0.5 and its pair ``degenerate``). ``across_target``
     (:func:`railtraj.matching.target.filled_target`: sparse far walls with planes) fits each
     window's across and up again from there, its along-track offset held (in it, tilted coarse
     planes drew a window's along-track offset onto a rib 1.5 m away).
@@ -396,7 +397,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         whose across at the start no longer holds (a box 3.5 m from the window's start sat
         2.4 cm off across in a bored tube)."""
         refit = fit_across(target if across_target is None else across_target, pts, d)
-        return refit.d if refit.fitness >= 0.5 and np.isfinite(refit.d).all() else None
+        return refit.d if refit.overlap >= 0.5 and np.isfinite(refit.d).all() else None
 
     def window_points(bounds: tuple[float, float, int]) -> tuple[np.ndarray | None, float]:
         """The window's sample of points (None: too few) and their mean along-track position."""
@@ -414,7 +415,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
         fit = point_to_plane(target, pts, d_start, iterations=10, max_dist=max(0.2, 2 * tau), fitness_radius=tau)
         if across_target is not None and across_target is not target and np.isfinite(fit.d).all():  # sparse walls too
             fit = fit_across(across_target, pts, fit.d)
-        if not (fit.fitness >= 0.5 and np.isfinite(fit.d).all()):
+        if not (fit.overlap >= 0.5 and np.isfinite(fit.d).all()):
             return None
         kept = pts[stays_on_tile(target, pts + fit.d, axis, ts, tau)]
         costs = along_costs(tree, kept, fit.d, axis, ts, tau, tree_along, normals)

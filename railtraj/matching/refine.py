@@ -38,6 +38,10 @@ class Fit:
     converged: bool
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # share of moving points on the reference's surface (PlaneTarget.fits): ``fitness`` or more
+    # on a target with planes beyond the fitness radius. It decides whether the clouds overlap;
+    # ``fitness`` is what alias tests compare (their thresholds were set on it)
+    overlap: float = float("nan")
 
 
 def sample(xyz: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -106,7 +110,7 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
     npar = 3 if translation_only else 6
     sigma, n_used, converged, it, prev = np.nan, 0, False, 0, None
     info, dist = np.full((3, 3), np.nan), np.full(len(moving), np.inf)
-    nearest = target.tracker(max(max_dist, fitness_radius))
+    nearest = target.tracker(max(max_dist, fitness_radius, target.surface_reach))
     # the directions the fit moves in: all, or those across ``fixed``
     free = np.eye(npar) if fixed is None else np.linalg.svd(np.eye(3) - np.outer(fixed, fixed))[0][:, :2]
     for it in range(iterations + 1):
@@ -133,7 +137,12 @@ def point_to_plane(target: PlaneTarget, moving: np.ndarray, d0: np.ndarray, *,
             d = d + step[3:]
         converged = bool(np.abs(step).max() < tol)
     share = float(np.mean(dist <= fitness_radius)) if len(moving) else 0.0
-    return Fit(d, _covariance(info, sigma, max_sd), info, sigma, share, n_used, it, converged, rot, center)
+    overlap = share
+    if len(moving) and target.surface is not None:  # on the last linearization's points (q, ok, idx)
+        nearest_idx = np.full(len(moving), -1)
+        nearest_idx[ok] = idx
+        overlap = float(np.mean(target.fits(q, nearest_idx, dist, fitness_radius)))
+    return Fit(d, _covariance(info, sigma, max_sd), info, sigma, share, n_used, it, converged, rot, center, overlap)
 
 
 def directions(information: np.ndarray) -> dict:

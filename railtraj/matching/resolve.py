@@ -36,7 +36,7 @@ from railtraj.matching.piecewise import (
     window_ties,
 )
 from railtraj.matching.refine import directions, sample
-from railtraj.matching.target import cached_filled_target, cached_target
+from railtraj.matching.target import PlaneTarget, cached_filled_target, cached_target, with_surface
 from railtraj.matching.threads import in_background
 from railtraj.matching.voting import Votes, find_peaks, slices
 
@@ -60,6 +60,7 @@ class VoteSettings:
     check_points: int = 20_000  # raw points of tile b for the dense check
     profile_points: int = 2_000  # of those, slid along the weak axis to find aliases
     fitness_radius: float = 0.05
+    surface_reach: float = 0.0  # m; beyond fitness_radius: points fit where a plane is (PlaneTarget.fits)
     min_fitness: float = 0.5  # below: no common geometry (no_overlap)
     ambiguity_ratio: float = 0.8  # misfit best/rival at or above this: ambiguous
     max_sd: float = 0.03  # m; see builtins.icp
@@ -102,7 +103,7 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     piecewise = refiner is not None and s.window_length > 0
     # run a's KD-tree for the window profiles, built on another core while its plane target is
     tree = in_background(reference_tree, tile_a.xyz) if piecewise else None
-    target = cached_target(tile_a.xyz, s.target_voxel)
+    target = reference_targets(tile_a.xyz, s)[0]
     moving = sample(tile_b.xyz, s.check_points, seed=1)
     checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
     best = choose(checked, s.inlier_radius)[0]
@@ -114,7 +115,7 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     info.update(vote_peaks=peak_table(checked), chosen_peak=best, rival_misfit_ratio=rival,
                 check_fitness=chosen.fit.fitness)
     info["timings"]["dense_check"] = time.perf_counter() - t1
-    if chosen.fit.fitness < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
+    if chosen.fit.overlap < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
         return failed(tile_a, tile_b, "no_consensus" if few_votes else "no_overlap", info, chosen.fit.d,
                       inliers=chosen.peak.count)
     if piecewise:
@@ -130,6 +131,16 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         out.info.update(info)
         return out
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
+
+
+def reference_targets(xyz: np.ndarray, s: VoteSettings) -> tuple[PlaneTarget, PlaneTarget]:
+    """Run a's plane target and its filled one (the windows' across-and-up fits), where
+    ``s.surface_reach`` exceeds the fitness radius each fitting points on the filled planes
+    that far from a voxel centroid (:meth:`railtraj.matching.target.PlaneTarget.fits`)."""
+    target, filled = cached_target(xyz, s.target_voxel), cached_filled_target(xyz, s.target_voxel)
+    if s.surface_reach <= s.fitness_radius:
+        return target, filled
+    return with_surface(target, filled, s.surface_reach), with_surface(filled, filled, s.surface_reach)
 
 
 def _beyond(tile: PointTile, left_out: np.ndarray | None) -> np.ndarray:
@@ -149,8 +160,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     whose offsets follow the curve. A pair with fewer votes than ``min_inliers`` is never
     ``ok`` here: its alias is left to the chain along the track."""
     t0 = time.perf_counter()
-    target = cached_target(tile_a.xyz, s.target_voxel)
-    across_target = cached_filled_target(tile_a.xyz, s.target_voxel)
+    target, across_target = reference_targets(tile_a.xyz, s)
 
     a_around = _beyond(tile_a, None) if s.objects else None  # (the same for every start)
 

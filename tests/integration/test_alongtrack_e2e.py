@@ -61,19 +61,22 @@ def test_a_survey_of_50_m_tiles_is_matched_in_parts_and_corrected(tmp_path):
     assert max(score["max_abs_m"]) <= 0.05, score
 
 
-def test_a_sparse_scan_is_told_so_and_not_made_worse(tmp_path):
-    """At 71 points per profile (0.16 m apart along each, median) walls are lines along the
-    track and few pairs align: the run says so (railtraj.matching.spacing.sparse_profiles_note),
-    and what it does align must still be right. At 0.5 size (a 150 m tunnel, 30 s): none of 11
-    pairs aligned along the track, 0.78 / 1.36 -> 0.48 / 0.93 m from across and up alone."""
+def test_a_sparse_scan_is_corrected_and_told_it_is_sparse(tmp_path):
+    """At 71 points per profile (0.16 m apart along each, median) the walls are rows of points
+    and the two runs' rows interleave. Counted by the distance to run a's points, a pair's
+    fitness at the right offset was below half and none of 11 pairs was aligned along the
+    track: 0.78 / 1.36 -> 0.48 / 0.93 m. Counted on run a's planes
+    (railtraj.matching.target.PlaneTarget.fits), 7 are aligned: 0.028 / 0.058 m. The run still
+    says the scan is sparse (railtraj.matching.spacing.sparse_profiles_note). At 0.5 size (a
+    150 m tunnel) 30 s."""
     scn = get_scenario("commensurate")
-    scn = replace(scn, scanner=replace(scn.scanner, points_per_profile=100))  # x sqrt(0.5): 70
+    scn = replace(scn, scanner=replace(scn.scanner, points_per_profile=100))  # x sqrt(0.5): 71
     survey = generate(scn, tmp_path / "survey", seed=5, size=0.5).survey_dir
     metrics = _run(survey, tmp_path / "out")
     notes = [n for n in metrics["notes"] if "the scan is sparse" in n]
     assert len(notes) == 1 and "apart along each profile" in notes[0], metrics["notes"]
     before, after = _pair(metrics, "before"), _pair(metrics, "after")
-    assert after["rms_h"] <= before["rms_h"] and after["max_h"] <= before["max_h"], (before, after)
+    assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"], (before, after)
     score = metrics["truth"]["tile_offsets"]
     assert score.get("ok_pairs", 0) == 0 or max(score["max_abs_m"]) <= 0.05, score
 

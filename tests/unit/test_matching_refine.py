@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from railtraj.matching.refine import crop, directions, point_to_plane, sample
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile
-from railtraj.matching.target import build_target, filled_target
+from railtraj.matching.target import build_target, filled_target, with_surface
 
 SHIFT = np.array([0.5, 1.5, 0.1])  # tunnel frame: along, across, up
 
@@ -171,3 +171,30 @@ def test_a_fit_held_along_a_direction_moves_only_across_it(ribbed):
     assert (fit.d - start) @ axis == pytest.approx(0.0, abs=1e-9)
     across = (fit.d - truth) - ((fit.d - truth) @ axis) * axis
     assert np.abs(across).max() < 0.002, across * 1000
+
+
+def _wall_rows(z0: float, seed: int, step: float = 0.16) -> np.ndarray:
+    """A side wall (y = 2) as a sparse profile scanner samples it: rows of points along the track
+    ``step`` apart in height from ``z0``, a profile every 4 cm along them."""
+    rng = np.random.default_rng(seed)
+    xx, zz = np.meshgrid(np.arange(0.0, 10.0, 0.04), np.arange(z0, 3.0, step), indexing="ij")
+    wall = np.column_stack([xx.ravel(), np.full(xx.size, 2.0), zz.ravel()])
+    return wall + rng.normal(0, 0.003, wall.shape)
+
+
+def test_another_runs_rows_between_the_reference_rows_lie_on_its_wall():
+    """Two runs' rows of wall points interleave: each of run b's lies 8 cm from run a's
+    nearest point, beyond the fitness radius, though on the wall. Counted by that distance, a
+    held-out run at 100-170 points per profile fitted by 0.22-0.57 at the truth (a run whose
+    rows fell on run a's: 0.9-0.98) and its pairs were refused as no overlap. Counted on the
+    filled planes within reach of a voxel centroid (``overlap``), they fit; the fitness the
+    alias tests compare is left as it was."""
+    a, b = _wall_rows(0.02, seed=0), _wall_rows(0.10, seed=1)
+    base = build_target(a, 0.07)
+    surface = with_surface(base, filled_target(a, base), reach=float(np.hypot(0.16 / 2, 0.07 / 2)))
+    plain = point_to_plane(base, b, np.zeros(3), iterations=0, fitness_radius=0.05)
+    on_planes = point_to_plane(surface, b, np.zeros(3), iterations=0, fitness_radius=0.05)
+    assert plain.overlap == plain.fitness < 0.3
+    assert on_planes.fitness == plain.fitness and on_planes.overlap > 0.9, on_planes.overlap
+    off_wall = point_to_plane(surface, b, np.array([0.0, 0.1, 0.0]), iterations=0, fitness_radius=0.05)
+    assert off_wall.overlap < 0.1  # 10 cm in front of the wall is not on it
