@@ -103,7 +103,7 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     piecewise = refiner is not None and s.window_length > 0
     # run a's KD-tree for the window profiles, built on another core while its plane target is
     tree = in_background(reference_tree, tile_a.xyz) if piecewise else None
-    target = reference_targets(tile_a.xyz, s)[0]
+    target = reference_target(tile_a.xyz, s)
     moving = sample(tile_b.xyz, s.check_points, seed=1)
     checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
     best = choose(checked, s.inlier_radius)[0]
@@ -133,14 +133,15 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
 
 
-def reference_targets(xyz: np.ndarray, s: VoteSettings) -> tuple[PlaneTarget, PlaneTarget]:
-    """Run a's plane target and its filled one (the windows' across-and-up fits), where
-    ``s.surface_reach`` exceeds the fitness radius each fitting points on the filled planes
-    that far from a voxel centroid (:meth:`railtraj.matching.target.PlaneTarget.fits`)."""
-    target, filled = cached_target(xyz, s.target_voxel), cached_filled_target(xyz, s.target_voxel)
+def reference_target(xyz: np.ndarray, s: VoteSettings, filled: bool = False) -> PlaneTarget:
+    """Run a's plane target (``filled``: :func:`railtraj.matching.target.filled_target`, for the
+    windows' across-and-up fits); where ``s.surface_reach`` exceeds the fitness radius, one
+    that fits points on the filled planes that far from a voxel centroid
+    (:meth:`railtraj.matching.target.PlaneTarget.fits`)."""
+    target = (cached_filled_target if filled else cached_target)(xyz, s.target_voxel)
     if s.surface_reach <= s.fitness_radius:
-        return target, filled
-    return with_surface(target, filled, s.surface_reach), with_surface(filled, filled, s.surface_reach)
+        return target
+    return with_surface(target, cached_filled_target(xyz, s.target_voxel), s.surface_reach)
 
 
 def _beyond(tile: PointTile, left_out: np.ndarray | None) -> np.ndarray:
@@ -160,7 +161,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
     whose offsets follow the curve. A pair with fewer votes than ``min_inliers`` is never
     ``ok`` here: its alias is left to the chain along the track."""
     t0 = time.perf_counter()
-    target, across_target = reference_targets(tile_a.xyz, s)
+    target, across_target = reference_target(tile_a.xyz, s), reference_target(tile_a.xyz, s, filled=True)
 
     a_around = _beyond(tile_a, None) if s.objects else None  # (the same for every start)
 
