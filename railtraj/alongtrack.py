@@ -516,13 +516,21 @@ def _rate_variance(pw: dict, options: AlongTrackOptions) -> float:
     On 1013 trusted pairs of 26 simulated surveys the rate's error against the truth grew with
     that geometry: 1.0 mm/m RMS on 5-6 windows spanning 20 m, 3.8 on three spanning 9 m, 15.6 on
     two (up to 46 mm/m). With ``rate_sd`` alone, 2.4 % were beyond 3 sd and 1.3 % beyond 4; with
-    the geometry, 0.2 % and none."""
+    the geometry, 0.2 % and none.
+
+    Windows scattered more than ``window_sd`` about the curve (``window_resid_sd_mm``) count with
+    that scatter: on a sparse scan (120 points per profile) a pair's three windows found two ring
+    aliases 1.2 m apart, and their slope of -119 mm/m (the truth: 0), taken to 4 mm/m at the
+    chain's first pair, bent the prediction 1.3-2.5 m off. Two pairs were fixed there on ring
+    aliases, claiming 2-3 cm."""
     s = _used_windows(pw)
     if len(s) < 2:
         return options.rate_sd**2
     u = s - np.median(s)  # the reference point: the median of run b's points, about the windows'
     design = np.vander(u, 3 if len(s) >= 4 else 2, increasing=True)
-    return float(options.rate_sd**2 + np.linalg.pinv(design.T @ design)[1, 1] * options.window_sd**2)
+    # windows scattered more than window_sd about the curve lend its slope that scatter
+    scatter = max(options.window_sd, float(pw.get("window_resid_sd_mm", [0.0])[0]) / 1000.0)
+    return float(options.rate_sd**2 + np.linalg.pinv(design.T @ design)[1, 1] * scatter**2)
 
 
 def _with_drift_rate(o: TileOffset, pair: Pair, trajectories: dict[str, Trajectory],

@@ -893,3 +893,25 @@ def test_every_pair_the_chains_keep_claims_five_millimetres_across_and_up_at_lea
     for o in kept:
         sd = np.sqrt(np.diag(o.cov))
         assert sd[1] >= PAIR_ACROSS_SD - 1e-9 and sd[2] >= PAIR_ACROSS_SD - 1e-9, sd
+
+
+@pytest.mark.parametrize("scatter_mm, all_fixed", [(5.0, False), (550.0, True)])
+def test_a_rate_from_windows_on_two_aliases_counts_their_scatter(scatter_mm, all_fixed):
+    """The first pair from a portal measured its rate from three windows, one on the next
+    alias: a slope of 120 mm/m through a scatter of 0.55 m along the track. Nothing before it in
+    the chain knows the rate, so with ``window_sd`` alone (4 mm/m) the prediction follows it: here
+    the six pairs nearest that portal stay unresolved (in a held-out tube at 120 points per
+    profile, two pairs were fixed 1.3 and 2.5 m off claiming 2-3 cm). With the windows' own
+    scatter the rate is worth 70 mm/m, and the whole chain is fixed on the truth."""
+    aliases = {1: 1.5, 2: 3.0, 4: -1.5, 5: 0.6, 7: -3.0, 9: 1.5, 10: 0.6}
+    offsets, trajs, s = _chain(aliases, statuses={}, unique_every=4)
+    first = len(offsets) - 1  # run b travels back: the last pair is its chain's first
+    windows = [[x, 0.0, 0.0, 0.0, 1.0, 1.0] for x in (-6.0, -0.6, 4.5)]
+    pw = dict(offsets[first].info["piecewise"], gradient=[-0.12, 0.0, 0.0], windows=windows,
+              window_resid_sd_mm=[scatter_mm, 3.0, 3.0])
+    offsets[first] = replace(offsets[first], info=dict(offsets[first].info, piecewise=pw))
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    fixed = [o.status in ("ok", "coarse") for o in out]
+    wrong = [k for k, o in enumerate(out) if fixed[k] and abs(o.d[0] - _true_along(s[k : k + 1])[0]) > 0.01]
+    assert not wrong
+    assert all(fixed) == all_fixed, fixed
