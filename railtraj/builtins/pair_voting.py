@@ -40,6 +40,7 @@ class VotingOptions:
     n_peaks: int = 5  # distinct vote peaks checked on the dense clouds
     check_points: int = 20_000  # raw points of tile b for that check
     min_fitness: float = 0.5  # share of points on run a's surface at the best peak (Fit.overlap); below: no_overlap
+    search_m: float = 0.5  # m; where no vote peak fits, the dense clouds are searched this far about the initial offset (0: off)
     ambiguity_ratio: float = 0.8  # misfit of the best / of a distinct rival peak; above: ambiguous
     max_sd: float = 0.01  # m; sd of the offset in any direction above this: degenerate
     refine: bool = True  # point-to-plane refinement (windows along the track, or one rigid fit)
@@ -65,11 +66,14 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
     if o.min_check_votes < 1:
         raise ConfigError(f"matcher={matcher} min_check_votes={o.min_check_votes}: give 1 or more votes "
                           f"(min_check_votes >= min_inliers={o.min_inliers} checks no pair below min_inliers)")
+    if not 0 <= o.search_m <= o.max_misalignment:
+        raise ConfigError(f"matcher={matcher} search_m={o.search_m}: give metres from 0 (off) to "
+                          f"max_misalignment={o.max_misalignment}")
     if o.tie_positions not in ("offset", "keypoints"):
         raise ConfigError(f"tie_positions={o.tie_positions!r}: choose offset or keypoints")
     settings = VoteSettings(inlier_radius=o.inlier_radius, n_peaks=o.n_peaks, min_inliers=o.min_inliers,
                             min_check_votes=o.min_check_votes,
-                            check_points=o.check_points, min_fitness=o.min_fitness,
+                            check_points=o.check_points, min_fitness=o.min_fitness, search_m=o.search_m,
                             ambiguity_ratio=o.ambiguity_ratio, max_sd=o.max_sd, target_voxel=o.target_voxel,
                             tie_positions=o.tie_positions, window_length=o.window_length,
                             min_windows=o.min_windows, intensity=o.intensity,

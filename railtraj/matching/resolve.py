@@ -22,6 +22,7 @@ from railtraj.matching.consensus import (
     consensus,
     failed,
     make_ties,
+    search_peaks,
 )
 from railtraj.matching.intensity import Surroundings
 from railtraj.matching.piecewise import (
@@ -62,6 +63,9 @@ class VoteSettings:
     fitness_radius: float = 0.05
     surface_reach: float = 0.0  # m; beyond fitness_radius: points fit where a plane is (PlaneTarget.fits)
     min_fitness: float = 0.5  # below: no common geometry (no_overlap)
+    # m; where no vote peak fits, the clouds are searched this far about the trajectories' offset
+    # (search_peaks; piecewise only; 0: off)
+    search_m: float = 0.5
     ambiguity_ratio: float = 0.8  # misfit best/rival at or above this: ambiguous
     max_sd: float = 0.03  # m; see builtins.icp
     target_voxel: float = 0.05
@@ -84,43 +88,47 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     peaks = find_peaks(votes, s.inlier_radius, s.n_peaks)
     info.update(pairs=len(votes), background_votes=votes.background(s.inlier_radius))
     info["timings"]["peaks"] = time.perf_counter() - t0
+    piecewise = refiner is not None and s.window_length > 0
     # a sparse detector (20-70 keypoints a tile) leaves a fifth of the pairs below min_inliers,
     # though their dense clouds fit: those are checked too, but their alias rests on the dense
     # profile and the chain along the track, never on their votes (at best ambiguous)
-    few_votes = bool(peaks) and s.min_check_votes <= peaks[0].count < s.min_inliers and refiner is not None \
-        and s.window_length > 0
-    if not peaks or (peaks[0].count < s.min_inliers and not few_votes):
-        info["vote_peaks"] = [[*p.d.tolist(), float(p.count), np.nan] for p in peaks]
-        return failed(tile_a, tile_b, "no_consensus", info, peaks[0].d if peaks else None,
-                      inliers=peaks[0].count if peaks else 0)
-    info["peak_ratio"] = peaks[1].count / peaks[0].count if len(peaks) > 1 else 0.0
-    info["vote_slices"] = slices(votes, peaks[0].d, s.inlier_radius)
-    candidates = [p for p in peaks if p.count >= (s.min_check_votes if few_votes else s.min_inliers)]
+    few_votes = bool(peaks) and s.min_check_votes <= peaks[0].count < s.min_inliers and piecewise
+    voted = bool(peaks) and (peaks[0].count >= s.min_inliers or few_votes)
+    searched = piecewise and s.search_m > 0
+    if not voted and not searched:
+        return _unchecked(tile_a, tile_b, peaks, info)
+    if voted:
+        info["peak_ratio"] = peaks[1].count / peaks[0].count if len(peaks) > 1 else 0.0
+        info["vote_slices"] = slices(votes, peaks[0].d, s.inlier_radius)
     if few_votes:
         info["few_votes"] = int(peaks[0].count)
 
     t1 = time.perf_counter()
-    piecewise = refiner is not None and s.window_length > 0
     # run a's KD-tree for the window profiles, built on another core while its plane target is
     tree = in_background(reference_tree, tile_a.xyz) if piecewise else None
     target = reference_target(tile_a.xyz, s)
     moving = sample(tile_b.xyz, s.check_points, seed=1)
-    checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
-    best = choose(checked, s.inlier_radius)[0]
-    rivals, info["alias_profile"] = alias_rivals(target, moving, checked[best], votes.center, votes.window,
-                                                 s.fitness_radius, 2 * s.inlier_radius, s.profile_points)
-    checked += rivals
-    best, rival = choose(checked, s.inlier_radius)
-    chosen = checked[best]
-    info.update(vote_peaks=peak_table(checked), chosen_peak=best, rival_misfit_ratio=rival,
-                check_fitness=chosen.fit.fitness)
+    chosen, refusal = None, "no_consensus" if few_votes or not voted else "no_overlap"
+    if voted:
+        chosen = _dense_check(target, moving, [p for p in peaks if p.count >= (s.min_check_votes if few_votes else
+                                                                                s.min_inliers)], votes, s, info)
+    if (chosen is None or chosen.fit.overlap < s.min_fitness) and searched:
+        # the votes found nothing that fits: the clouds themselves are searched about the
+        # trajectories' offset, and what they find is at best ambiguous, as a few votes' peak
+        found = search_peaks(target, moving, votes.center, s.search_m, s.fitness_radius, s.n_peaks, s.fitness_radius)
+        rival_info: dict = {}
+        checked = _dense_check(target, moving, found, votes, s, rival_info) if found else None
+        if checked is not None and checked.fit.overlap >= s.min_fitness:
+            chosen, few_votes = checked, True
+            info.update(rival_info, few_votes=0, searched_m=s.search_m)
     info["timings"]["dense_check"] = time.perf_counter() - t1
+    if chosen is None:  # no peak with votes enough, and the search found nothing that fits
+        return _unchecked(tile_a, tile_b, peaks, info)
     if chosen.fit.overlap < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
-        return failed(tile_a, tile_b, "no_consensus" if few_votes else "no_overlap", info, chosen.fit.d,
-                      inliers=chosen.peak.count)
+        return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
     if piecewise:
         return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, tree(), few_votes)
-    if rival >= s.ambiguity_ratio:
+    if info["rival_misfit_ratio"] >= s.ambiguity_ratio:
         return failed(tile_a, tile_b, "ambiguous", info, chosen.fit.d, alias_covariance(chosen.fit, votes.window),
                       inliers=chosen.peak.count)
 
@@ -131,6 +139,29 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
         out.info.update(info)
         return out
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
+
+
+def _unchecked(tile_a: PointTile, tile_b: PointTile, peaks: list, info: dict) -> TileOffset:
+    """``no_consensus``: no vote peak had votes enough to be checked on the dense clouds."""
+    info["vote_peaks"] = [[*p.d.tolist(), float(p.count), np.nan] for p in peaks]
+    return failed(tile_a, tile_b, "no_consensus", info, peaks[0].d if peaks else None,
+                  inliers=peaks[0].count if peaks else 0)
+
+
+def _dense_check(target: PlaneTarget, moving: np.ndarray, candidates: list, votes: Votes, s: VoteSettings,
+                 info: dict):
+    """The candidate translation that fits ``moving`` best after a quick fit, among ``candidates``
+    and the two best aliases along its weak axis; its alias profile and the peaks' table go to
+    ``info``."""
+    checked = check_peaks(target, moving, candidates, fitness_radius=s.fitness_radius)
+    best = choose(checked, s.inlier_radius)[0]
+    rivals, info["alias_profile"] = alias_rivals(target, moving, checked[best], votes.center, votes.window,
+                                                 s.fitness_radius, 2 * s.inlier_radius, s.profile_points)
+    checked += rivals
+    best, rival = choose(checked, s.inlier_radius)
+    info.update(vote_peaks=peak_table(checked), chosen_peak=best, rival_misfit_ratio=rival,
+                check_fitness=checked[best].fit.fitness)
+    return checked[best]
 
 
 def reference_target(xyz: np.ndarray, s: VoteSettings, filled: bool = False) -> PlaneTarget:

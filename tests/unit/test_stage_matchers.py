@@ -217,13 +217,34 @@ def test_a_pair_with_too_few_votes_is_checked_densely_but_never_ok(replica):
     t = prof["start"] + prof["step"] * np.arange(len(prof["fitness"]))
     along = (truth - off.d) @ np.asarray(prof["axis"])
     assert t.min() <= along <= t.max()
-    refused = registry().create("matcher", "pair_voting", dict(strict, min_check_votes=100_000)).match(a, ka, b, kb)
+    refused = registry().create("matcher", "pair_voting", dict(strict, min_check_votes=100_000, search_m=0.0)).match(
+        a, ka, b, kb)
     assert refused.status == "no_consensus"
+
+
+def test_a_pair_without_votes_is_searched_on_the_dense_clouds_but_never_ok(replica):
+    """No vote peak has votes enough (keypoints that do not repeat, as on a sparse scan): the
+    dense clouds are searched within ``search_m`` of the initial offset, and the best of that
+    search's and its alias profile's candidates gives across and up (at best ``ambiguous``).
+    The truth lies 1.6 m from the start here; the grid sees the walls, the profile the rest."""
+    a, b, truth = replica
+    ka, kb = _detect("iss", PRESETS["tunnel"], a, b)
+    none = {"min_inliers": 100_000, "min_check_votes": 100_000}
+    off = registry().create("matcher", "pair_voting", none).match(a, ka, b, kb)
+    assert off.status == "ambiguous" and len(off.ties) == 0, off.status
+    assert off.info["few_votes"] == 0 and off.info["searched_m"] == 0.5
+    across = np.cross([0.0, 0.0, 1.0], AXIS)
+    assert abs((off.d - truth) @ across) < 0.005 and abs(off.d[2] - truth[2]) < 0.005
 
 
 def test_min_check_votes_below_one_is_refused():
     with pytest.raises(ConfigError, match="min_check_votes=0: give 1 or more"):
         registry().create("matcher", "pair_voting", {"min_check_votes": 0})
+
+
+def test_a_search_beyond_the_matchers_window_is_refused():
+    with pytest.raises(ConfigError, match="search_m=4.0: give metres from 0 .off. to max_misalignment=3.0"):
+        registry().create("matcher", "pair_voting", {"search_m": 4.0})
 
 
 def test_a_pair_no_window_of_which_could_be_fitted_is_degenerate_and_unused(replica):
