@@ -895,6 +895,23 @@ def test_every_pair_the_chains_keep_claims_five_millimetres_across_and_up_at_lea
         assert sd[1] >= PAIR_ACROSS_SD - 1e-9 and sd[2] >= PAIR_ACROSS_SD - 1e-9, sd
 
 
+@pytest.mark.parametrize("spacing, floor", [(0.035, 0.005), (0.18, 0.018), (0.35, 0.035)])
+def test_a_sparse_scans_pairs_claim_a_tenth_of_their_points_spacing_across_and_up(spacing, floor):
+    """Where a profile's points lie 0.18-0.36 m apart, a pair's windows agree with each other
+    across and up but not with the truth (held-out twin-track tunnels: 3.6 cm across and 10 cm up
+    off, claiming 5 mm). Every pair the chains keep claims a tenth of its points' spacing at least;
+    a dense scan's (3.5 cm) keeps 5 mm."""
+    offsets, trajs, s = _chain({2: 3.0, 4: -1.5}, statuses={0: "ok", 3: "ok", 6: "ok"})
+    offsets = [replace(o, cov=np.diag([0.01, 0.002, 0.002]) ** 2, info=dict(o.info, point_spacing=spacing))
+               for o in offsets]
+    out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    kept = [o for o in out if o.status in ("ok", "coarse", "ambiguous") and np.isfinite(o.cov).all()]
+    assert len(kept) >= 5
+    for o in kept:
+        sd = np.sqrt(np.diag(o.cov))
+        np.testing.assert_allclose(sd[1:], floor, rtol=1e-6)
+
+
 @pytest.mark.parametrize("scatter_mm, all_fixed", [(5.0, False), (550.0, True)])
 def test_a_rate_from_windows_on_two_aliases_counts_their_scatter(scatter_mm, all_fixed):
     """The first pair from a portal measured its rate from three windows, one on the next
