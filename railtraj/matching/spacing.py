@@ -88,10 +88,11 @@ def sparse_profiles_note(offsets: list) -> str | None:
     but fewer pairs pass the alias tests. Five simulated surveys at 100-170 points per profile
     (median spacings 0.136-0.21 m) aligned 10-57 % of their tile pairs along the track and left
     their runs 0.016-0.42 m apart (RMS; 0.59-1.35 m in the input), with the sd saying so; at
-    0.124-0.127 m (150-160 points) 1.1-1.3 cm. But a tube at 120 points per profile had two
-    ``coarse`` pairs on ring aliases 1.3 and 2.5 m off claiming 2-3 cm, and a twin-track tunnel
-    at 140 with a GNSS bias at a portal kept that bias (0.38 m, claiming 0.9 cm: its portal's
-    pairs in the open cutting were refused). The note changes nothing.
+    0.124-0.127 m (150-160 points) 1.1-1.3 cm. Session 40 mended two that reported wrong answers
+    as reliable (a tube's pairs on ring aliases, a portal's GNSS bias kept), but a twin-track
+    tunnel at 130 points per profile still kept 6 cm of a run's portal bias claiming 1.5 cm (3 m
+    of its track beyond 3 sd), and control targets were located 8 cm off in height where they
+    claimed 2 cm (rows of points 0.18 m apart on the wall). The note changes nothing.
     """
     spacing = np.array([o.info.get("point_spacing", np.nan) for o in offsets], float)
     spacing = spacing[np.isfinite(spacing)]
@@ -101,8 +102,9 @@ def sparse_profiles_note(offsets: list) -> str | None:
     return (f"the scan is sparse: its points lie {np.median(spacing):.2f} m apart along each profile (median over "
             f"{len(spacing)} tile pairs; the matcher is checked down to {SPARSE_POINT_SPACING:.2f} m), so walls show "
             f"as rows of points and fewer tile pairs align ({aligned} of {len(offsets)} along the track). Treat the "
-            "correction as unverified: at such spacings simulated surveys had tile pairs fixed on a wrong alias and a "
-            "GNSS bias at a portal left in place with its small sd. Scan with more points per profile for a full "
+            "correction as unverified: at such spacings simulated surveys were left up to 0.4 m apart where few pairs "
+            "aligned (the corrected sd says where), part of a run's GNSS bias at a portal was kept with a small sd, and "
+            "control targets were located up to 8 cm off in height. Scan with more points per profile for a full "
             "correction")
 
 
