@@ -47,7 +47,7 @@ from railtraj.io.survey import (
 )
 from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.matching.objects import CONTEXT_M
-from railtraj.matching.spacing import sparse_profiles_note
+from railtraj.matching.spacing import median_point_spacing, sparse_profiles_note
 from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
@@ -194,7 +194,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     clock["alongtrack"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    control, notes = observe_control(survey, trajectories)
+    control, notes = observe_control(survey, trajectories, point_spacing=median_point_spacing(resolved)[0])
     notes = survey_notes + notes + [n for n in [*along_notes, sparse_profiles_note(resolved)] if n]
     clock["control"] = time.perf_counter() - t0
 

@@ -77,6 +77,14 @@ def point_spacing(*tiles: PointTile) -> float:
     return float(np.nanmax(along)) if np.isfinite(along).any() else float("nan")
 
 
+def median_point_spacing(offsets: list) -> tuple[float, int]:
+    """The median over the tile pairs of the points' spacing along a profile (``point_spacing``
+    in each pair's info; NaN where none has it), and how many pairs have it."""
+    spacing = np.array([o.info.get("point_spacing", np.nan) for o in offsets], float)
+    spacing = spacing[np.isfinite(spacing)]
+    return (float(np.median(spacing)) if len(spacing) else float("nan")), len(spacing)
+
+
 def sparse_profiles_note(offsets: list) -> str | None:
     """A warning when the scanner samples each profile too coarsely for the matcher: the median
     over the tile pairs of the points' spacing along a profile (``point_spacing`` in each pair's
@@ -91,21 +99,21 @@ def sparse_profiles_note(offsets: list) -> str | None:
     0.124-0.127 m (150-160 points) 1.1-1.3 cm. Session 40 mended two that reported wrong answers
     as reliable (a tube's pairs on ring aliases, a portal's GNSS bias kept), but a twin-track
     tunnel at 130 points per profile still kept 6 cm of a run's portal bias claiming 1.5 cm (3 m
-    of its track beyond 3 sd), and control targets were located 8 cm off in height where they
-    claimed 2 cm (rows of points 0.18 m apart on the wall). The note changes nothing.
+    of its track beyond 3 sd), and control targets are located only to a few centimetres in
+    height (up to 8 cm off: rows of points 0.18 m apart on the wall; they claim a third of the
+    spacing). The note changes nothing.
     """
-    spacing = np.array([o.info.get("point_spacing", np.nan) for o in offsets], float)
-    spacing = spacing[np.isfinite(spacing)]
-    if not len(spacing) or np.median(spacing) <= SPARSE_POINT_SPACING:
+    spacing, n = median_point_spacing(offsets)
+    if not n or spacing <= SPARSE_POINT_SPACING:
         return None
     aligned = sum(o.status in ("ok", "coarse") for o in offsets)
-    return (f"the scan is sparse: its points lie {np.median(spacing):.2f} m apart along each profile (median over "
-            f"{len(spacing)} tile pairs; the matcher is checked down to {SPARSE_POINT_SPACING:.2f} m), so walls show "
+    return (f"the scan is sparse: its points lie {spacing:.2f} m apart along each profile (median over "
+            f"{n} tile pairs; the matcher is checked down to {SPARSE_POINT_SPACING:.2f} m), so walls show "
             f"as rows of points and fewer tile pairs align ({aligned} of {len(offsets)} along the track). Treat the "
             "correction as unverified: at such spacings simulated surveys were left up to 0.4 m apart where few pairs "
             "aligned (the corrected sd says where), part of a run's GNSS bias at a portal was kept with a small sd, and "
-            "control targets were located up to 8 cm off in height. Scan with more points per profile for a full "
-            "correction")
+            "control targets were located up to 8 cm off in height (they claim a third of the spacing). Scan with more "
+            "points per profile for a full correction")
 
 
 def radius_scale(*tiles: PointTile) -> tuple[float, float]:

@@ -55,3 +55,51 @@ def test_bad_control_obs_rows_are_refused_with_the_fix(tmp_path, make_trajectory
 def test_no_control_csv_gives_no_observations(tmp_path, make_trajectory):
     obs, notes = observe_control(Survey(tmp_path, {}), {"a": make_trajectory()})
     assert len(obs) == 0 and notes == []
+
+
+def _wall_with_target(tmp_path, traj, spacing: float, phase: float) -> tuple[Survey, np.ndarray]:
+    """A side wall 2.5 m right of a run heading north, scanned in rows of points ``spacing``
+    apart up the wall (a profile every 4.5 cm along it), with a bright 0.2 m target centred
+    ``phase`` m above a row: the survey folder, and the target's centre."""
+    from railtraj.data import PointTile
+    from railtraj.io.las import read_header, write_tile
+    from railtraj.io.survey import RunInfo
+
+    y0 = traj.xyz[0, 1]
+    yy, zz = np.meshgrid(np.arange(90.0, 110.0, 0.045), np.arange(0.5, 3.0, spacing), indexing="ij")
+    x = np.full(yy.size, traj.xyz[0, 0] + 2.5)
+    xyz = np.column_stack([x, y0 + yy.ravel(), traj.xyz[0, 2] + zz.ravel()])
+    centre = np.array([x[0], y0 + 100.0, traj.xyz[0, 2] + 0.5 + 6 * spacing + phase])
+    on_target = (np.abs(xyz[:, 1] - centre[1]) <= 0.1) & (np.abs(xyz[:, 2] - centre[2]) <= 0.1)
+    times = traj.time[0] + yy.ravel() / 10.0  # abreast of each point at 10 m/s
+    order = np.argsort(times)
+    tile = PointTile(xyz[order], times[order], np.where(on_target, 20_000, 1_000)[order].astype(np.uint16), "run_a")
+    folder = tmp_path / "run_a"
+    folder.mkdir(parents=True)
+    write_tile(folder / "wall.laz", tile)
+    (tmp_path / "control.csv").write_text("id,x,y,z,sd_x,sd_y,sd_z\nCP1," + ",".join(f"{v:.4f}" for v in centre)
+                                          + ",0.003,0.003,0.004\n")
+    run = RunInfo("run_a", folder, folder / "trajectory.csv", [read_header(folder / "wall.laz")])
+    return Survey(tmp_path, {"run_a": run}, control_path=tmp_path / "control.csv"), centre
+
+
+@pytest.mark.parametrize("spacing", [0.04, 0.18])
+def test_a_located_targets_height_is_claimed_to_the_spacing_of_its_rows(tmp_path, make_trajectory, spacing):
+    """A 0.2 m target on a wall scanned in rows 0.18 m apart is one row of points, anywhere within
+    9 cm of its centre: its height is off by that much, not the 2 cm a dense scan gives. Given the
+    scan's point spacing, the located height claims ``spacing / sqrt(12)`` at least and stays
+    within 2 sd of the truth; without it, it claims 2 cm and is up to 3.8 sd off. At 0.04 m the
+    2 cm stays."""
+    traj = make_trajectory(n=3000, run_id="run_a", heading_deg=0.0, sd=False)
+    worst = {}
+    for k, phase in enumerate(np.array([-0.075, -0.04, 0.0, 0.035, 0.075]) * spacing / 0.18):
+        survey, centre = _wall_with_target(tmp_path / str(k), traj, spacing, phase)
+        for given in (float("nan"), spacing):
+            obs, notes = observe_control(survey, {"run_a": traj}, point_spacing=given)
+            assert len(obs) == 1 and not notes, notes
+            z = abs(obs.seen[0, 2] - centre[2]) / obs.pick_sd[0, 2]
+            worst[np.isfinite(given)] = max(worst.get(np.isfinite(given), 0.0), z)
+            if np.isfinite(given):
+                assert obs.pick_sd[0, 2] == pytest.approx(max(0.02, spacing / np.sqrt(12)))
+    assert worst[True] <= 2.0, worst
+    assert (worst[False] > 3.0) == (spacing > 0.1), worst
