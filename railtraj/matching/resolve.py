@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.consensus import (
+    Checked,
     alias_covariance,
     alias_rivals,
     check_peaks,
@@ -115,12 +116,13 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     if (chosen is None or chosen.fit.overlap < s.min_fitness) and searched:
         # the votes found nothing that fits: the clouds themselves are searched about the
         # trajectories' offset, and what they find is at best ambiguous, as a few votes' peak
-        found = search_peaks(target, moving, votes.center, s.search_m, s.fitness_radius, s.n_peaks, s.fitness_radius)
-        rival_info: dict = {}
-        checked = _dense_check(target, moving, found, votes, s, rival_info) if found else None
+        found = search_peaks(target, moving, votes.center, half=s.search_m, step=s.fitness_radius, n=s.n_peaks,
+                             radius=s.fitness_radius)
+        searched_info: dict = {}  # (the votes' check stays on record should the search find nothing)
+        checked = _dense_check(target, moving, found, votes, s, searched_info) if found else None
         if checked is not None and checked.fit.overlap >= s.min_fitness:
             chosen, few_votes = checked, True
-            info.update(rival_info, few_votes=0, searched_m=s.search_m)
+            info.update(searched_info, few_votes=0, searched_m=s.search_m)
     info["timings"]["dense_check"] = time.perf_counter() - t1
     if chosen is None:  # no peak with votes enough, and the search found nothing that fits
         return _unchecked(tile_a, tile_b, peaks, info)
@@ -149,7 +151,7 @@ def _unchecked(tile_a: PointTile, tile_b: PointTile, peaks: list, info: dict) ->
 
 
 def _dense_check(target: PlaneTarget, moving: np.ndarray, candidates: list, votes: Votes, s: VoteSettings,
-                 info: dict):
+                 info: dict) -> Checked:
     """The candidate translation that fits ``moving`` best after a quick fit, among ``candidates``
     and the two best aliases along its weak axis; its alias profile and the peaks' table go to
     ``info``."""
