@@ -249,9 +249,20 @@ def _report_row(index: int, o: TileOffset, status: str, verdict: str, shift: flo
     return row
 
 
-def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin: float) -> str | None:
-    """A note (and a warning) when a chain puts two runs further apart along the track (2 sd) than
-    the matcher searched: its window (``matcher.max_misalignment``) or the tiles' crop
+class BeyondReach(NamedTuple):
+    """Where a chain puts two runs further apart along the track than the matcher searched
+    (:func:`beyond_reach`): the worst pair's report row, the window searched there, a window
+    that would reach (``suggested``, m, rounded up to half a metre) and every run pair concerned."""
+
+    worst: dict
+    window: float
+    suggested: float
+    run_pairs: frozenset
+
+
+def beyond_reach(report: list[dict], offsets: list[TileOffset], crop_margin: float) -> BeyondReach | None:
+    """Whether a chain puts two runs further apart along the track (2 sd) than the matcher
+    searched: its window (``matcher.max_misalignment``, in each pair's info) or the tiles' crop
     (``pipeline.max_misalignment_m``, ``crop_margin``). There no pair can have been matched at its
     true offset, only at an alias inside the window, and the chain leaves such pairs unresolved.
     On a simulated survey whose runs drifted 2.5 m (4 m apart), a run's pairs stayed unresolved
@@ -265,13 +276,24 @@ def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin
     if not rows:
         return None
     reach = np.array([abs(r["predicted_m"]) + 2.0 * r["predicted_sd_m"] for r in rows])
-    k = int(np.argmax(reach - window))
-    if reach[k] <= window[k]:
+    beyond = reach > window
+    if not beyond.any():
         return None
-    worst, suggested = rows[k], np.ceil(2.0 * (reach.max() + 0.5)) / 2.0
+    k = int(np.argmax(reach - window))
+    run_pairs = frozenset((r["run_a"], r["run_b"]) for r, b in zip(rows, beyond, strict=True) if b)
+    return BeyondReach(rows[k], float(window[k]), float(np.ceil(2.0 * (reach.max() + 0.5)) / 2.0), run_pairs)
+
+
+def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin: float) -> str | None:
+    """A note (and a warning) when a chain puts two runs further apart along the track than the
+    matcher searched (:func:`beyond_reach`), with the options that would reach."""
+    found = beyond_reach(report, offsets, crop_margin)
+    if found is None:
+        return None
+    worst, suggested = found.worst, found.suggested
     note = (f"along-track: runs {worst['run_a']} and {worst['run_b']} are {abs(worst['predicted_m']):.2f} +- "
             f"{worst['predicted_sd_m']:.2f} m apart along the track at tile {worst['tile_a']}, but tile pairs were "
-            f"searched within {window[k]:g} m: there they could not be matched at their true offset and stay "
+            f"searched within {found.window:g} m: there they could not be matched at their true offset and stay "
             f"unresolved; run again with matcher.max_misalignment={suggested:g} "
             f"pipeline.max_misalignment_m={suggested:g}")
     log.warning(note)

@@ -38,6 +38,9 @@ class PipelineConfig:
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
     pair_part_m: float = 25.0          # larger tiles are matched in parts this long (0: whole tiles)
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
+    # where the along-track chains put two runs further apart than that, their tile pairs are
+    # matched again within the distance they need, up to this (m; at most max_misalignment_m: never)
+    max_widened_m: float = 6.0
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement

@@ -21,7 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from railtraj.alongtrack import AlongTrackOptions, beyond_reach_note, resolve_along_track
+from railtraj.alongtrack import (
+    AlongTrackOptions,
+    BeyondReach,
+    beyond_reach,
+    beyond_reach_note,
+    resolve_along_track,
+)
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
 from railtraj.data import (
@@ -83,6 +89,7 @@ class PipelineOptions:
     min_overlap_m: float = 2.0
     pair_part_m: float = 25.0
     max_misalignment_m: float = 3.0
+    max_widened_m: float = 6.0
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
@@ -159,39 +166,30 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     tile_key = dict(zip(tiles, tile_keys, strict=True))
-    backwards = order[::-1]  # the tiles detected last are still in the tile cache: match them first
-    pair_keys = [cache.pair_key(pairs[k], tile_key[(pairs[k].run_a, pairs[k].tile_a.path)],
-                                tile_key[(pairs[k].run_b, pairs[k].tile_b.path)],
-                                {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
-                 if cache else "" for k in backwards]
-    jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
-             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, per_process) for k in backwards]
-    with blas_one_thread():
-        matched, pairs_reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
-                                           progress=progress or _log_progress("matched", "tile pairs"))
-    results: list[PairResult] = [None] * len(pairs)  # type: ignore[list-item]
-    for k, r in zip(backwards, matched, strict=True):
-        results[k] = r
+    results, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
     if cache:
         cache.prune()
     clock["match"] = time.perf_counter() - t0
     log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in results), len(results))
 
     t0 = time.perf_counter()
-    # the chains are anchored where the runs report a small sd (portals): where the matcher's
-    # pairs show a run's GNSS biased there, that anchor is as loose as the check widens it
-    matched = [r.offset for r in results]
-    before_chains = None
-    if options.alongtrack.enabled:
-        before_chains = check_reported_sd(trajectories, matched, replace(options.sd_check, along=False))
-    anchors = trajectories if before_chains is None else before_chains.trajectories
-    resolved, alongtrack = resolve_along_track(matched, anchors, options.alongtrack)
-    results = [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)]
-    ok = [r.offset for r in results if r.offset.ok]
-    along_notes = []
-    if options.alongtrack.enabled:
-        along_notes = [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, options.max_misalignment_m)]
+    results, before_chains, alongtrack = _along_track(results, trajectories, options)
     clock["alongtrack"] = time.perf_counter() - t0
+    along_notes, searched = [], options.max_misalignment_m
+    if options.alongtrack.enabled:
+        reach = beyond_reach(alongtrack, [r.offset for r in results], searched)
+        if reach is not None and _can_widen(stages.matcher, options, reach):
+            t0 = time.perf_counter()
+            results, searched, note, more = _widened(reach, pairs, results, keypoints, tile_key, stages, per_process,
+                                                     cache, progress, survey)
+            results, before_chains, alongtrack = _along_track(results, trajectories, options)
+            pairs_reused += more
+            along_notes.append(note)
+            clock["widened"] = time.perf_counter() - t0
+        along_notes += [fitted_direction_note([r.offset for r in results]),
+                        beyond_reach_note(alongtrack, [r.offset for r in results], searched)]
+    resolved = [r.offset for r in results]
+    ok = [o for o in resolved if o.ok]
 
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories, point_spacing=median_point_spacing(resolved)[0])
@@ -212,6 +210,84 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})
+
+
+def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, stages: Stages, options: PipelineOptions,
+           cache: Cache | None, progress) -> tuple[list[PairResult], int]:
+    """Match ``pairs`` on the executor (finished pairs from ``cache``), in the order of ``pairs``;
+    and how many came from the cache."""
+    order = visit_order(pairs)
+    backwards = order[::-1]  # the tiles detected last are still in the tile cache: match them first
+    pair_keys = [cache.pair_key(pairs[k], tile_key[(pairs[k].run_a, pairs[k].tile_a.path)],
+                                tile_key[(pairs[k].run_b, pairs[k].tile_b.path)],
+                                {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
+                 if cache else "" for k in backwards]
+    jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
+             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options) for k in backwards]
+    with blas_one_thread():
+        matched, reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
+                                     progress=progress or _log_progress("matched", "tile pairs"))
+    results: list[PairResult] = [None] * len(pairs)  # type: ignore[list-item]
+    for k, r in zip(backwards, matched, strict=True):
+        results[k] = r
+    return results, reused
+
+
+def _along_track(results: list[PairResult], trajectories: dict[str, Trajectory],
+                 options: PipelineOptions) -> tuple[list[PairResult], SdCheck | None, list[dict]]:
+    """The matched pairs with their along-track aliases resolved jointly (:mod:`railtraj.alongtrack`),
+    the check of reported sd made before the chains (across and up), and the along-track report."""
+    # the chains are anchored where the runs report a small sd (portals): where the matcher's
+    # pairs show a run's GNSS biased there, that anchor is as loose as the check widens it
+    matched = [r.offset for r in results]
+    before_chains = None
+    if options.alongtrack.enabled:
+        before_chains = check_reported_sd(trajectories, matched, replace(options.sd_check, along=False))
+    anchors = trajectories if before_chains is None else before_chains.trajectories
+    resolved, report = resolve_along_track(matched, anchors, options.alongtrack)
+    return [replace(r, offset=o) for r, o in zip(results, resolved, strict=True)], before_chains, report
+
+
+def _can_widen(matcher, options: PipelineOptions, reach: BeyondReach) -> bool:
+    """Whether the pairs a chain puts beyond the matcher's reach can be matched again further out:
+    ``pipeline.max_widened_m`` is beyond the window searched, and the matcher can be widened
+    (it has a ``widened(window)`` method, as the built-in voting matchers)."""
+    return options.max_widened_m > reach.window and callable(getattr(matcher, "widened", None))
+
+
+def _widened(reach: BeyondReach, pairs: list[TilePair], results: list[PairResult], keypoints: dict,
+             tile_key: dict, stages: Stages, options: PipelineOptions, cache: Cache | None, progress,
+             survey: Survey) -> tuple[list[PairResult], float, str, int]:
+    """``results`` with every tile pair of the run pairs ``reach`` names matched again within a
+    wider window (the suggested one, at most ``pipeline.max_widened_m``); that window, a note
+    saying so, and the count of those pairs reused from the cache.
+
+    The matcher searches within ``matcher.max_misalignment`` (3 m) of where the trajectories put
+    the runs; where the chains put two runs further apart (2 sd), no pair there can be matched at
+    its truth, only at an alias inside the window, and the chains leave them unresolved. A held-out
+    sparse portal survey (140 points per profile) had one run 2.6 m off the reference: 0.42 / 0.87 m
+    inter-run, the chains saying "1.64 +- 0.69 m apart"; matched again within 4 m, 0.025 / 0.106 m.
+    Only those run pairs' tiles are matched again, and their keypoints are reused."""
+    window = min(reach.suggested, options.max_widened_m)
+    again = [k for k, p in enumerate(pairs) if (p.run_a, p.run_b) in reach.run_pairs
+             or (p.run_b, p.run_a) in reach.run_pairs]
+    wide = replace(stages, matcher=stages.matcher.widened(window))
+    redo = with_context([pairs[k] for k in again], survey, window + CONTEXT_M)
+    log.warning("along-track: runs %s are %.2f +- %.2f m apart at tile %s, beyond the %g m the matcher searched: "
+                "matching their %d tile pairs again within %g m", " and ".join(sorted(next(iter(reach.run_pairs)))),
+                abs(reach.worst["predicted_m"]), reach.worst["predicted_sd_m"], reach.worst["tile_a"], reach.window,
+                len(again), window)
+    matched, more = _match(redo, keypoints, tile_key, wide, replace(options, max_misalignment_m=window), cache, progress)
+    out = list(results)
+    for k, r in zip(again, matched, strict=True):
+        out[k] = r
+    runs = ", ".join(f"{a}~{b}" for a, b in sorted(reach.run_pairs))
+    note = (f"along-track: the chains put runs {reach.worst['run_a']} and {reach.worst['run_b']} "
+            f"{abs(reach.worst['predicted_m']):.2f} +- {reach.worst['predicted_sd_m']:.2f} m apart at tile "
+            f"{reach.worst['tile_a']}, beyond the {reach.window:g} m the matcher searched; the {len(again)} tile pairs "
+            f"of {runs} were matched again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; "
+            f"0: never)")
+    return out, window, note, more
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],

@@ -13,6 +13,7 @@ eigen-decomposition. Statuses: few_keypoints, no_overlap, no_consensus, ambiguou
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, replace
 
@@ -94,6 +95,17 @@ class VotingMatcher:
         o = VotingOptions(**options)
         self.window, self.min_keypoints = o.max_misalignment, o.min_keypoints
         self.settings, self.icp = vote_setup(self.kind, o)
+
+    def widened(self, window: float) -> VotingMatcher:
+        """This matcher searching within ``window`` metres (``max_misalignment``): the pipeline
+        matches a run pair's tiles again so where the along-track chains put the runs further
+        apart than it searched (:func:`railtraj.pipeline.run_pipeline`)."""
+        out = copy.copy(self)
+        out.window = window
+        if self.icp is not None:
+            out.icp = copy.copy(self.icp)
+            out.icp.window = window
+        return out
 
     def open(self, tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoints,
              initial: TileOffset | None) -> tuple[np.ndarray, dict, TileOffset | None]:

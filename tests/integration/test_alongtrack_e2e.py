@@ -46,6 +46,24 @@ def test_commensurate_tunnel_is_corrected_without_accepting_an_alias(commensurat
     assert not [n for n in metrics["notes"] if "the scan is sparse" in n]  # 420 points per profile
 
 
+def test_runs_further_apart_than_the_matcher_searched_are_matched_again_further_out(commensurate, tmp_path):
+    """The runs drift up to 1.6 m apart; searched within 1 m, the pairs where they are further
+    apart can only be matched on an alias inside the window. The chains put the runs 1.44 +- 0.09 m
+    apart there, so that run pair's tile pairs are matched again within 2.5 m, and the survey is
+    corrected as with the default window: 0.94 / 1.58 -> 0.014 / 0.031 m. Without it
+    (``pipeline.max_widened_m=0``, before session 41) a note asked the user to run again."""
+    metrics = _run(commensurate, tmp_path / "out", "matcher.max_misalignment=1.0", "pipeline.max_misalignment_m=1.0")
+    widened = [n for n in metrics["notes"] if "were matched again within" in n]
+    assert len(widened) == 1 and "beyond the 1 m the matcher searched" in widened[0], metrics["notes"]
+    assert not [n for n in metrics["notes"] if "run again with" in n]
+    before, after = _pair(metrics, "before"), _pair(metrics, "after")
+    assert before["max_h"] > 1.2  # the runs were further apart than the 1 m searched
+    assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"], (before, after)
+    score = metrics["truth"]["tile_offsets"]
+    assert score["ok_pairs"] >= 5 and max(score["max_abs_m"]) <= 0.05, score
+    assert "widened" in metrics["seconds"]
+
+
 def test_a_survey_of_50_m_tiles_is_matched_in_parts_and_corrected(tmp_path):
     """Tiles may have any size (SPEC). Matched whole, 50 m tiles gave pairs 50 m apart whose
     curves could not follow the drift: 18 % of them were used and the runs stayed 1.41 m apart

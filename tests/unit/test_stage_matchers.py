@@ -257,3 +257,18 @@ def test_a_pair_no_window_of_which_could_be_fitted_is_degenerate_and_unused(repl
     off = registry().create("matcher", "pair_voting", {}).match(a, ka, sparse, kb)
     assert off.status == "degenerate" and "piecewise" not in off.info, off.status
     assert not np.isfinite(off.cov).any() and off.info["unusable"]
+
+
+def test_a_widened_matcher_finds_an_offset_beyond_the_window_it_was_built_with(replica):
+    """The thesis replica's runs are 1.58 m apart: a voting matcher built to search within 1 m
+    finds nothing right; the copy the pipeline widens to 2.5 m (where the chains put runs beyond
+    the window) finds the offset, and the matcher it was made from still searches within 1 m."""
+    a, b, truth = replica
+    narrow = registry().create("matcher", "pair_voting", {"max_misalignment": 1.0})
+    kp_a, kp_b = _detect("iss", {}, a, b)
+    off = narrow.match(a, kp_a, b, kp_b)
+    assert off.status != "ok" or np.abs(off.d - truth).max() > 0.5
+    wide = narrow.widened(2.5)
+    off = wide.match(a, kp_a, b, kp_b)
+    assert off.status == "ok" and np.abs(off.d - truth).max() < 0.005, (off.status, off.d - truth)
+    assert off.info["window"] == 2.5 and narrow.window == 1.0 and narrow.icp.window == 1.0 and wide.icp.window == 2.5
