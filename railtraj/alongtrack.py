@@ -266,8 +266,9 @@ def beyond_reach(report: list[dict], offsets: list[TileOffset], crop_margin: flo
     (``pipeline.max_misalignment_m``, ``crop_margin``). There no pair can have been matched at its
     true offset, only at an alias inside the window, and the chain leaves such pairs unresolved.
     On a simulated survey whose runs drifted 2.5 m (4 m apart), a run's pairs stayed unresolved
-    over 200 m and the runs 1.26 m apart; 60 surveys of drifts up to 1.5 m reached 2.6 m at most."""
-    rows = [r for r in report if "predicted_m" in r]
+    over 200 m and the runs 1.26 m apart; 60 surveys of drifts up to 1.5 m reached 2.6 m at most.
+    A pair the chain fixed (``ok``, or resolved) was matched where the chain puts the runs."""
+    rows = [r for r in report if "predicted_m" in r and r["status"] != "ok" and r["verdict"] != "resolved"]
     window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
     # a prediction vaguer than the window says nothing of where the runs are (a chain with no
     # sure pair: "0.46 +- 1000 m apart" asked for a 2 km search window on a sparse scan)

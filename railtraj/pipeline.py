@@ -166,23 +166,23 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     tile_key = dict(zip(tiles, tile_keys, strict=True))
-    results, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
+    matched, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
     if cache:
         cache.prune()
     clock["match"] = time.perf_counter() - t0
-    log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in results), len(results))
+    log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in matched), len(matched))
 
     t0 = time.perf_counter()
-    results, before_chains, alongtrack = _along_track(results, trajectories, options)
+    results, before_chains, alongtrack = _along_track(matched, trajectories, options)
     clock["alongtrack"] = time.perf_counter() - t0
     along_notes, searched = [], options.max_misalignment_m
     if options.alongtrack.enabled:
         reach = beyond_reach(alongtrack, [r.offset for r in results], searched)
         if reach is not None and _can_widen(stages.matcher, options, reach):
             t0 = time.perf_counter()
-            results, searched, note, more = _widened(reach, pairs, results, keypoints, tile_key, stages, per_process,
-                                                     cache, progress, survey)
-            results, before_chains, alongtrack = _along_track(results, trajectories, options)
+            matched, searched, note, more = _widened(reach, pairs, matched, results, keypoints, tile_key, stages,
+                                                     per_process, cache, progress, survey)
+            results, before_chains, alongtrack = _along_track(matched, trajectories, options)
             pairs_reused += more
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
@@ -255,39 +255,53 @@ def _can_widen(matcher, options: PipelineOptions, reach: BeyondReach) -> bool:
     return options.max_widened_m > reach.window and callable(getattr(matcher, "widened", None))
 
 
-def _widened(reach: BeyondReach, pairs: list[TilePair], results: list[PairResult], keypoints: dict,
-             tile_key: dict, stages: Stages, options: PipelineOptions, cache: Cache | None, progress,
-             survey: Survey) -> tuple[list[PairResult], float, str, int]:
-    """``results`` with every tile pair of the run pairs ``reach`` names matched again within a
-    wider window (the suggested one, at most ``pipeline.max_widened_m``); that window, a note
-    saying so, and the count of those pairs reused from the cache.
+def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult], resolved: list[PairResult],
+             keypoints: dict, tile_key: dict, stages: Stages, options: PipelineOptions, cache: Cache | None,
+             progress, survey: Survey) -> tuple[list[PairResult], float, str | None, int]:
+    """The matcher's results ``matched`` with the tile pairs of the run pairs ``reach`` names
+    matched again within a wider window (the suggested one, at most ``pipeline.max_widened_m``),
+    but for those the chains had already used along the track (``resolved``: ``ok``, or
+    resolved); that window, a note saying so, and the count of pairs reused from the cache.
 
     The matcher searches within ``matcher.max_misalignment`` (3 m) of where the trajectories put
     the runs; where the chains put two runs further apart (2 sd), no pair there can be matched at
     its truth, only at an alias inside the window, and the chains leave them unresolved. A held-out
     sparse portal survey (140 points per profile) had one run 2.6 m off the reference: 0.42 / 0.87 m
     inter-run, the chains saying "1.64 +- 0.69 m apart"; matched again within 4 m, 0.025 / 0.106 m.
-    Only those run pairs' tiles are matched again, and their keypoints are reused."""
+    Only those run pairs' tiles are matched again, and their keypoints are reused. A pair the
+    chains used is kept as it was: a wider window holds more aliases of the ribs (1.5 m) and
+    sleepers, and a held-out portal survey whose runs drifted 3.4 m apart, all of whose run
+    pair's tile pairs were matched again within 4.5 m, used 1 of them along the track instead of
+    14, and ended 0.144 / 0.270 m inter-run instead of 0.019 / 0.069."""
     window = min(reach.suggested, options.max_widened_m)
-    again = [k for k, p in enumerate(pairs) if (p.run_a, p.run_b) in reach.run_pairs
-             or (p.run_b, p.run_a) in reach.run_pairs]
+    again = [k for k, p in enumerate(pairs) if ((p.run_a, p.run_b) in reach.run_pairs
+                                                 or (p.run_b, p.run_a) in reach.run_pairs)
+             and not _used_along(resolved[k].offset)]
+    if not again:
+        return matched, reach.window, None, 0
     wide = replace(stages, matcher=stages.matcher.widened(window))
     redo = with_context([pairs[k] for k in again], survey, window + CONTEXT_M)
     log.warning("along-track: runs %s are %.2f +- %.2f m apart at tile %s, beyond the %g m the matcher searched: "
                 "matching their %d tile pairs again within %g m", " and ".join(sorted(next(iter(reach.run_pairs)))),
                 abs(reach.worst["predicted_m"]), reach.worst["predicted_sd_m"], reach.worst["tile_a"], reach.window,
                 len(again), window)
-    matched, more = _match(redo, keypoints, tile_key, wide, replace(options, max_misalignment_m=window), cache, progress)
-    out = list(results)
-    for k, r in zip(again, matched, strict=True):
+    again_matched, more = _match(redo, keypoints, tile_key, wide, replace(options, max_misalignment_m=window), cache,
+                                 progress)
+    out = list(matched)
+    for k, r in zip(again, again_matched, strict=True):
         out[k] = r
     runs = ", ".join(f"{a}~{b}" for a, b in sorted(reach.run_pairs))
     note = (f"along-track: the chains put runs {reach.worst['run_a']} and {reach.worst['run_b']} "
             f"{abs(reach.worst['predicted_m']):.2f} +- {reach.worst['predicted_sd_m']:.2f} m apart at tile "
             f"{reach.worst['tile_a']}, beyond the {reach.window:g} m the matcher searched; the {len(again)} tile pairs "
-            f"of {runs} were matched again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; "
+            f"of {runs} they had not used along the track were matched again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; "
             f"0: never)")
     return out, window, note, more
+
+
+def _used_along(o: TileOffset) -> bool:
+    """Whether the along-track chains used pair ``o`` along the track: ``ok``, or resolved."""
+    return o.status == "ok" or bool(o.info.get("resolved"))
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],

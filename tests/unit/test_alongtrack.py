@@ -497,6 +497,8 @@ def test_runs_further_apart_than_the_matcher_searched_are_reported(monkeypatch, 
     assert suggested >= peak
     vague = [dict(r, predicted_sd_m=1000.0) for r in report if "predicted_m" in r]  # no sure pair anywhere
     assert beyond_reach_note(vague, out, 3.0) is None
+    fixed = [dict(r, verdict="resolved") for r in report if "predicted_m" in r]  # matched where the chain puts them
+    assert beyond_reach_note(fixed, out, 3.0) is None
     for k, o in enumerate(out):
         if o.status in ("ok", "coarse"):
             assert abs(o.d[0] - along(s[k])) < 0.01, (k, o.status, o.d[0] - along(s[k]))
