@@ -267,7 +267,7 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
     the runs; where the chains put two runs further apart (2 sd), no pair there can be matched at
     its truth, only at an alias inside the window, and the chains leave them unresolved. A held-out
     sparse portal survey (140 points per profile) had one run 2.6 m off the reference: 0.42 / 0.87 m
-    inter-run, the chains saying "1.64 +- 0.69 m apart"; matched again within 4 m, 0.025 / 0.106 m.
+    inter-run, the chains saying "1.64 +- 0.69 m apart"; matched again within 4 m, 0.021 / 0.068 m.
     Only those run pairs' tiles are matched again, and their keypoints are reused. A pair the
     chains used is kept as it was: a wider window holds more aliases of the ribs (1.5 m) and
     sleepers, and a held-out portal survey whose runs drifted 3.4 m apart, all of whose run
@@ -279,23 +279,20 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
              and not _used_along(resolved[k].offset)]
     if not again:
         return matched, reach.window, None, 0
+    runs = ", ".join(f"{a}~{b}" for a, b in sorted(reach.run_pairs))
+    worst = reach.worst
+    note = (f"along-track: the chains put runs {worst['run_a']} and {worst['run_b']} {abs(worst['predicted_m']):.2f} "
+            f"+- {worst['predicted_sd_m']:.2f} m apart at tile {worst['tile_a']}, beyond the {reach.window:g} m the "
+            f"matcher searched; the {len(again)} tile pairs of {runs} they had not used along the track were matched "
+            f"again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; 0: never)")
+    log.warning(note)
     wide = replace(stages, matcher=stages.matcher.widened(window))
     redo = with_context([pairs[k] for k in again], survey, window + CONTEXT_M)
-    log.warning("along-track: runs %s are %.2f +- %.2f m apart at tile %s, beyond the %g m the matcher searched: "
-                "matching their %d tile pairs again within %g m", " and ".join(sorted(next(iter(reach.run_pairs)))),
-                abs(reach.worst["predicted_m"]), reach.worst["predicted_sd_m"], reach.worst["tile_a"], reach.window,
-                len(again), window)
     again_matched, more = _match(redo, keypoints, tile_key, wide, replace(options, max_misalignment_m=window), cache,
                                  progress)
     out = list(matched)
     for k, r in zip(again, again_matched, strict=True):
         out[k] = r
-    runs = ", ".join(f"{a}~{b}" for a, b in sorted(reach.run_pairs))
-    note = (f"along-track: the chains put runs {reach.worst['run_a']} and {reach.worst['run_b']} "
-            f"{abs(reach.worst['predicted_m']):.2f} +- {reach.worst['predicted_sd_m']:.2f} m apart at tile "
-            f"{reach.worst['tile_a']}, beyond the {reach.window:g} m the matcher searched; the {len(again)} tile pairs "
-            f"of {runs} they had not used along the track were matched again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; "
-            f"0: never)")
     return out, window, note, more
 
 
