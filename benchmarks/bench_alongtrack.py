@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from railtraj.alongtrack import used_along
 from railtraj.georef import PoseCache
 from railtraj.pipeline import PipelineOptions, Stages, run_pipeline
 from railtraj.plugins import registry
@@ -127,7 +128,7 @@ def score(survey_dir: Path, result) -> dict:
     poses = PoseCache()
     ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t, poses), axis=1) for t in result.ties]
     ties = np.concatenate(ties) if ties else np.zeros(0)
-    used = sum(o.status == "ok" or bool(o.info.get("resolved")) for o in result.offsets)
+    used = sum(used_along(o) for o in result.offsets)
     return {
         "h_before": pool(before, "rms_h"), "hmax_before": maxi(before, "max_h"),
         "h_after": pool(after, "rms_h"), "hmax_after": maxi(after, "max_h"), "v_after": pool(after, "rms_v"),

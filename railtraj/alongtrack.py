@@ -249,6 +249,11 @@ def _report_row(index: int, o: TileOffset, status: str, verdict: str, shift: flo
     return row
 
 
+def used_along(o: TileOffset) -> bool:
+    """Whether the chains used pair ``o`` along the track: ``ok``, or resolved (``coarse`` too)."""
+    return o.status == "ok" or bool(o.info.get("resolved"))
+
+
 class BeyondReach(NamedTuple):
     """Where a chain puts two runs further apart along the track than the matcher searched
     (:func:`beyond_reach`): the worst pair's report row, the window searched there, a window
@@ -267,7 +272,8 @@ def beyond_reach(report: list[dict], offsets: list[TileOffset], crop_margin: flo
     true offset, only at an alias inside the window, and the chain leaves such pairs unresolved.
     On a simulated survey whose runs drifted 2.5 m (4 m apart), a run's pairs stayed unresolved
     over 200 m and the runs 1.26 m apart; 60 surveys of drifts up to 1.5 m reached 2.6 m at most.
-    A pair the chain fixed (``ok``, or resolved) was matched where the chain puts the runs."""
+    A pair the chain fixed (``ok``, or resolved: :func:`used_along`) was matched where the chain
+    puts the runs."""
     rows = [r for r in report if "predicted_m" in r and r["status"] != "ok" and r["verdict"] != "resolved"]
     window = np.array([min(float(offsets[r["pair"]].info.get("window", np.inf)), crop_margin) for r in rows])
     # a prediction vaguer than the window says nothing of where the runs are (a chain with no

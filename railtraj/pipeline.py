@@ -27,6 +27,7 @@ from railtraj.alongtrack import (
     beyond_reach,
     beyond_reach_note,
     resolve_along_track,
+    used_along,
 )
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
@@ -186,9 +187,9 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             pairs_reused += more
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
-        along_notes += [fitted_direction_note([r.offset for r in results]),
-                        beyond_reach_note(alongtrack, [r.offset for r in results], searched)]
     resolved = [r.offset for r in results]
+    if options.alongtrack.enabled:
+        along_notes += [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, searched)]
     ok = [o for o in resolved if o.ok]
 
     t0 = time.perf_counter()
@@ -276,7 +277,7 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
     window = min(reach.suggested, options.max_widened_m)
     again = [k for k, p in enumerate(pairs) if ((p.run_a, p.run_b) in reach.run_pairs
                                                  or (p.run_b, p.run_a) in reach.run_pairs)
-             and not _used_along(resolved[k].offset)]
+             and not used_along(resolved[k].offset)]
     if not again:
         return matched, reach.window, None, 0
     runs = ", ".join(f"{a}~{b}" for a, b in sorted(reach.run_pairs))
@@ -294,11 +295,6 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
     for k, r in zip(again, again_matched, strict=True):
         out[k] = r
     return out, window, note, more
-
-
-def _used_along(o: TileOffset) -> bool:
-    """Whether the along-track chains used pair ``o`` along the track: ``ok``, or resolved."""
-    return o.status == "ok" or bool(o.info.get("resolved"))
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],
