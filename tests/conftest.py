@@ -63,16 +63,3 @@ def ostn15_dir(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("ostn15")
     ostn15.ensure_grid(folder)
     return folder
-
-
-def pytest_collection_modifyitems(config, items) -> None:
-    """Modules with slow (end-to-end) tests first, each kept whole and in place otherwise.
-
-    scripts/test.sh hands whole modules to the cores (pytest-xdist ``--dist loadscope``) in this
-    order (``--no-loadscope-reorder``; xdist's own order puts the modules with most tests first,
-    the one-test end-to-end modules last). Started last, a 90 s end-to-end module ran alone for
-    its whole length while the other core sat idle; started first, the short unit tests fill the
-    end.
-    """
-    slow = {item.module.__name__ for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.module.__name__ not in slow)  # stable: the rest keeps its order
