@@ -291,10 +291,9 @@ def beyond_reach(report: list[dict], offsets: list[TileOffset], crop_margin: flo
     return BeyondReach(rows[k], float(window[k]), float(np.ceil(2.0 * (reach.max() + 0.5)) / 2.0), run_pairs)
 
 
-def beyond_reach_note(report: list[dict], offsets: list[TileOffset], crop_margin: float) -> str | None:
-    """A note (and a warning) when a chain puts two runs further apart along the track than the
-    matcher searched (:func:`beyond_reach`), with the options that would reach."""
-    found = beyond_reach(report, offsets, crop_margin)
+def beyond_reach_note(found: BeyondReach | None) -> str | None:
+    """A note (and a warning) where a chain puts two runs further apart along the track than the
+    matcher searched (``found``, from :func:`beyond_reach`), with the options that would reach."""
     if found is None:
         return None
     worst, suggested = found.worst, found.suggested

@@ -177,19 +177,20 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     results, before_chains, alongtrack = _along_track(matched, trajectories, options)
     clock["alongtrack"] = time.perf_counter() - t0
     along_notes, searched = [], options.max_misalignment_m
+    resolved = [r.offset for r in results]
     if options.alongtrack.enabled:
-        reach = beyond_reach(alongtrack, [r.offset for r in results], searched)
+        reach = beyond_reach(alongtrack, resolved, searched)
         if reach is not None and _can_widen(stages.matcher, options, reach):
             t0 = time.perf_counter()
             matched, searched, note, more = _widened(reach, pairs, matched, results, keypoints, tile_key, stages,
                                                      per_process, cache, progress, survey)
             results, before_chains, alongtrack = _along_track(matched, trajectories, options)
+            resolved = [r.offset for r in results]
+            reach = beyond_reach(alongtrack, resolved, searched)  # what even the second pass did not reach
             pairs_reused += more
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
-    resolved = [r.offset for r in results]
-    if options.alongtrack.enabled:
-        along_notes += [fitted_direction_note(resolved), beyond_reach_note(alongtrack, resolved, searched)]
+        along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach)]
     ok = [o for o in resolved if o.ok]
 
     t0 = time.perf_counter()

@@ -8,7 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from railtraj.alongtrack import AlongTrackOptions, beyond_reach_note, resolve_along_track
+from railtraj.alongtrack import (
+    AlongTrackOptions,
+    beyond_reach,
+    beyond_reach_note,
+    resolve_along_track,
+)
 from railtraj.data import Ties, TileOffset, Trajectory
 
 PORTALS = (50.0, 350.0)
@@ -488,7 +493,7 @@ def test_runs_further_apart_than_the_matcher_searched_are_reported(monkeypatch, 
     inside = [-1.5 * np.ceil(max(along(x) - 2.9, 0.0) / 1.5) for x in s]  # the alias the matcher could see
     offsets = [_pair(x, alias, "ambiguous", k % 3 == 0, a, b) for k, (x, alias) in enumerate(zip(s, inside, strict=True))]
     out, report = resolve_along_track(offsets, {"run_a": a, "run_b": b}, AlongTrackOptions())
-    note = beyond_reach_note(report, out, 3.0)
+    note = beyond_reach_note(beyond_reach(report, out, 3.0))
     if peak < 3.0:
         assert note is None
         return
@@ -496,9 +501,9 @@ def test_runs_further_apart_than_the_matcher_searched_are_reported(monkeypatch, 
     suggested = float(note.rsplit("=", 1)[1])
     assert suggested >= peak
     vague = [dict(r, predicted_sd_m=1000.0) for r in report if "predicted_m" in r]  # no sure pair anywhere
-    assert beyond_reach_note(vague, out, 3.0) is None
+    assert beyond_reach_note(beyond_reach(vague, out, 3.0)) is None
     fixed = [dict(r, verdict="resolved") for r in report if "predicted_m" in r]  # matched where the chain puts them
-    assert beyond_reach_note(fixed, out, 3.0) is None
+    assert beyond_reach_note(beyond_reach(fixed, out, 3.0)) is None
     for k, o in enumerate(out):
         if o.status in ("ok", "coarse"):
             assert abs(o.d[0] - along(s[k])) < 0.01, (k, o.status, o.d[0] - along(s[k]))
