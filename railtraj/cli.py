@@ -8,6 +8,7 @@ printed as one line (``railtraj: error: ...``) and the exit status is 2.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -20,6 +21,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import CompactHydraException
 from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
@@ -52,19 +54,24 @@ def build_stages(cfg: DictConfig):
     return Stages(**built)
 
 
-def resume_cache(cfg: DictConfig, stages, out_dir: Path):
-    """The cache of finished tiles and pairs in ``out_dir`` (read only when ``resume=true``)."""
+def resume_cache(cfg: DictConfig, stages, out_dir: Path, sweep_dir: Path | None = None):
+    """The cache of finished tiles and pairs in ``out_dir`` (read only when ``resume=true``); in a
+    sweep, the one its jobs share in ``sweep_dir`` (:mod:`railtraj.resume`)."""
     from railtraj.pipeline import detect_tile, match_pair
     from railtraj.resume import CACHE_DIR, Cache, source_digest
 
     configs = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("detector", "descriptor", "matcher")}
     code = {"tiles": source_digest([stages.detector, stages.descriptor], [detect_tile]),
             "pairs": source_digest([stages.matcher], [match_pair])}
-    return Cache(out_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume))
+    if sweep_dir is None:
+        return Cache(out_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume))
+    return Cache(sweep_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume),
+                 job=hashlib.sha256(str(out_dir.resolve()).encode()).hexdigest()[:16])
 
 
-def run_job(cfg: DictConfig, out_dir: Path) -> None:
-    """Run one configured job and write its outputs to ``out_dir``."""
+def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> None:
+    """Run one configured job and write its outputs to ``out_dir`` (in a sweep: the sweep's
+    folder ``sweep_dir``, whose cache the jobs share)."""
     from railtraj.alongtrack import AlongTrackOptions
     from railtraj.crs import frame_transformer, resolve_sbet_crs
     from railtraj.export import write_outputs
@@ -106,7 +113,7 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
         frame_transformer(cfg.crs, sbet_crs, grid_dir)
     try:
         with MemoryMonitor(float(cfg.max_memory_gb)) as memory:
-            result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir))
+            result = run_pipeline(survey_dir, stages, options, cache=resume_cache(cfg, stages, out_dir, sweep_dir))
             out_dir.mkdir(parents=True, exist_ok=True)
             # written once the inputs passed, so a run that fails on bad input keeps the previous one
             with atomic_write(out_dir / "config.yaml") as fh:
@@ -123,13 +130,21 @@ def run_job(cfg: DictConfig, out_dir: Path) -> None:
 
 @hydra.main(version_base="1.3", config_path=None, config_name="railtraj")
 def _hydra_main(cfg: DictConfig) -> None:
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    out_dir = Path(hydra_cfg.runtime.output_dir)
+    sweep_dir = sweep_folder(str(out_dir), hydra_cfg.sweep.subdir) if hydra_cfg.mode == RunMode.MULTIRUN else None
     try:
-        run_job(cfg, out_dir)
+        run_job(cfg, out_dir, sweep_dir)
     except RailtrajError as exc:
         _failures.append(str(exc))
         log.error("%s", exc)
         print(f"railtraj: error: {exc}", file=sys.stderr)
+
+
+def sweep_folder(job_dir: str, subdir: str | None) -> Path:
+    """The sweep's folder of a job's output folder ``job_dir`` (``subdir`` being the job's part of it)."""
+    subdir = str(subdir or "")
+    return Path(job_dir[: -len(subdir)] if subdir and job_dir.endswith(subdir) else job_dir)
 
 
 class SweepSummary(Callback):
@@ -154,15 +169,18 @@ class SweepSummary(Callback):
         wall = time.perf_counter() - self._started.pop() if self._started else math.nan
         out = str(config.hydra.runtime.output_dir)
         subdir = str(OmegaConf.select(config, "hydra.sweep.subdir", default="") or "")
-        self._sweep_dir = Path(out[: -len(subdir)] if subdir and out.endswith(subdir) else out)
+        self._sweep_dir = sweep_folder(out, subdir)
         self._jobs.append(Job(Path(out), subdir, wall))
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        from railtraj.resume import CACHE_DIR, prune_sweep
         from railtraj.sweep import write_sweep_summary
 
         sweep_dir = self._sweep_dir or Path(to_absolute_path(str(config.hydra.sweep.dir)))
         if not sweep_dir.is_dir():
             return
+        if (sweep_dir / CACHE_DIR).is_dir():
+            log.info("sweep cache: %d entries no job used deleted", prune_sweep(sweep_dir / CACHE_DIR))
         try:
             rows = write_sweep_summary(sweep_dir, self._jobs)
         except (OSError, ValueError, KeyError) as exc:  # the jobs' outputs stand without a summary

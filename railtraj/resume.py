@@ -20,6 +20,12 @@ job is dispatched: reused work costs one file read. With ``reuse=False`` (``resu
 nothing is read and every result is computed and stored again. Once matching is done, the
 entries this run did not use (other inputs or options) and temporary files left by a killed run
 are deleted, so the cache holds one result per tile and pair of the last run.
+
+The jobs of a sweep (``railtraj -m ...``) share one cache, ``SWEEP/.railtraj-cache``: jobs that
+differ only in what comes after matching (the optimizer, along-track or sd-check options) reuse
+the first job's keypoints and matches, and a job with another detector reuses nothing it should
+not (the keys differ). Each job records what it used (``used-<job>.txt``) instead of pruning, and
+after the sweep's last job :func:`prune_sweep` deletes what no job used.
 """
 
 from __future__ import annotations
@@ -119,11 +125,12 @@ class Cache:
     """
 
     def __init__(self, folder: str | os.PathLike, configs: dict[str, Any],
-                 code: dict[str, str] | None = None, reuse: bool = True) -> None:
+                 code: dict[str, str] | None = None, reuse: bool = True, job: str | None = None) -> None:
         self.folder = Path(folder)
         self.configs = configs
         self.code = code or {}
         self.reuse = reuse
+        self.job = job  # the job's name in a sweep's shared cache; None: the cache of one out folder
         self.used: set[Path] = set()
 
     def tile_key(self, run_id: str, tile_path: Path, trajectory_span: tuple[float, float]) -> str:
@@ -153,10 +160,32 @@ class Cache:
             return None
 
     def prune(self) -> None:
-        """Delete the entries this run did not look up and temporary files of killed runs."""
+        """Delete the entries this run did not look up and temporary files of killed runs; in a
+        sweep's cache, record what this job looked up instead (:func:`prune_sweep`)."""
+        if self.job is not None:
+            with atomic_write(self.folder / f"{USED}{self.job}.txt") as fh:
+                fh.write("".join(f"{p.relative_to(self.folder)}\n" for p in sorted(self.used)))
+            return
         for path in [*self.folder.glob("*/*.pkl"), *self.folder.glob("*/.*.part")]:
             if path not in self.used:
                 path.unlink(missing_ok=True)
+
+
+#: prefix of a sweep job's list of the cache entries it used (Cache.prune, prune_sweep)
+USED = "used-"
+
+
+def prune_sweep(folder: str | os.PathLike) -> int:
+    """After a sweep's last job: delete the entries of its shared cache ``folder`` that no job
+    listed as used, temporary files of killed jobs, and the lists. Returns how many entries
+    were deleted. A sweep killed before its end keeps everything for the next."""
+    folder = Path(folder)
+    lists = sorted(folder.glob(f"{USED}*.txt"))
+    used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
+    gone = [p for p in [*folder.glob("*/*.pkl"), *folder.glob("*/.*.part")] if p not in used]
+    for path in [*gone, *lists]:
+        path.unlink(missing_ok=True)
+    return sum(p.suffix == ".pkl" for p in gone)
 
 
 #: the job process an executor's worker computes for (None in the job's own process)
