@@ -180,7 +180,9 @@ class SweepSummary(Callback):
         if not sweep_dir.is_dir():
             return
         if (sweep_dir / CACHE_DIR).is_dir():
-            log.info("sweep cache: %d entries no job used deleted", prune_sweep(sweep_dir / CACHE_DIR))
+            deleted = prune_sweep(sweep_dir / CACHE_DIR, len(self._jobs))
+            log.info("sweep cache: %s", "kept whole (a job failed before its matching ended)" if deleted is None
+                     else f"{deleted} entries no job used deleted")
         try:
             rows = write_sweep_summary(sweep_dir, self._jobs)
         except (OSError, ValueError, KeyError) as exc:  # the jobs' outputs stand without a summary

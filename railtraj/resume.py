@@ -175,17 +175,21 @@ class Cache:
 USED = "used-"
 
 
-def prune_sweep(folder: str | os.PathLike) -> int:
-    """After a sweep's last job: delete the entries of its shared cache ``folder`` that no job
-    listed as used, temporary files of killed jobs, and the lists. Returns how many entries
-    were deleted. A sweep killed before its end keeps everything for the next."""
+def prune_sweep(folder: str | os.PathLike, jobs: int) -> int | None:
+    """After the last of a sweep's ``jobs``: delete the entries of its shared cache ``folder``
+    that no job listed as used, temporary files of killed jobs, and the lists. Returns how many
+    entries were deleted; None, deleting only the lists, when a job did not list what it used
+    (it failed before matching ended): a sweep whose every job failed on a bad input must not
+    empty the cache of the last good one. A sweep killed before its end keeps everything."""
     folder = Path(folder)
     lists = sorted(folder.glob(f"{USED}*.txt"))
-    used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
-    gone = [p for p in [*folder.glob("*/*.pkl"), *folder.glob("*/.*.part")] if p not in used]
+    gone: list[Path] = []
+    if len(lists) >= jobs:
+        used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
+        gone = [p for p in [*folder.glob("*/*.pkl"), *folder.glob("*/.*.part")] if p not in used]
     for path in [*gone, *lists]:
         path.unlink(missing_ok=True)
-    return sum(p.suffix == ".pkl" for p in gone)
+    return sum(p.suffix == ".pkl" for p in gone) if len(lists) >= jobs else None
 
 
 #: the job process an executor's worker computes for (None in the job's own process)

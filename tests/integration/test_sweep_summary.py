@@ -65,5 +65,16 @@ def test_prune_sweep_keeps_what_any_job_used(tmp_path):
     second.used = {entries["b"], entries["ab"]}
     second.prune()
     assert all(path.exists() for path in [*entries.values(), part])  # nothing goes during the sweep
-    assert prune_sweep(tmp_path) == 2
+    assert prune_sweep(tmp_path, jobs=2) == 2
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["a.pkl", "ab.pkl", "b.pkl"]
+
+
+def test_prune_sweep_keeps_everything_when_a_job_failed(tmp_path):
+    """A job that failed (bad input) listed nothing: no entry goes, only the lists."""
+    entry = tmp_path / "tiles" / "a.pkl"
+    entry.parent.mkdir()
+    entry.write_bytes(b"")
+    job = Cache(tmp_path, {}, job="only")
+    job.prune()  # it used nothing, and a second job failed before listing anything
+    assert prune_sweep(tmp_path, jobs=2) is None
+    assert entry.exists() and not list(tmp_path.glob("used-*"))
