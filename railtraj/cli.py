@@ -63,10 +63,8 @@ def resume_cache(cfg: DictConfig, stages, out_dir: Path, sweep_dir: Path | None 
     configs = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("detector", "descriptor", "matcher")}
     code = {"tiles": source_digest([stages.detector, stages.descriptor], [detect_tile]),
             "pairs": source_digest([stages.matcher], [match_pair])}
-    if sweep_dir is None:
-        return Cache(out_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume))
-    return Cache(sweep_dir / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume),
-                 job=hashlib.sha256(str(out_dir.resolve()).encode()).hexdigest()[:16])
+    job = None if sweep_dir is None else hashlib.sha256(str(out_dir.resolve()).encode()).hexdigest()[:16]
+    return Cache((sweep_dir or out_dir) / CACHE_DIR, configs, code=code, reuse=bool(cfg.resume), job=job)
 
 
 def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> None:

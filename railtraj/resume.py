@@ -166,9 +166,14 @@ class Cache:
             with atomic_write(self.folder / f"{USED}{self.job}.txt") as fh:
                 fh.write("".join(f"{p.relative_to(self.folder)}\n" for p in sorted(self.used)))
             return
-        for path in [*self.folder.glob("*/*.pkl"), *self.folder.glob("*/.*.part")]:
+        for path in _entries_and_parts(self.folder):
             if path not in self.used:
                 path.unlink(missing_ok=True)
+
+
+def _entries_and_parts(folder: Path) -> list[Path]:
+    """A cache folder's entries and the temporary files of killed runs."""
+    return [*folder.glob("*/*.pkl"), *folder.glob("*/.*.part")]
 
 
 #: prefix of a sweep job's list of the cache entries it used (Cache.prune, prune_sweep)
@@ -183,10 +188,8 @@ def prune_sweep(folder: str | os.PathLike, jobs: int) -> int | None:
     empty the cache of the last good one. A sweep killed before its end keeps everything."""
     folder = Path(folder)
     lists = sorted(folder.glob(f"{USED}*.txt"))
-    gone: list[Path] = []
-    if len(lists) >= jobs:
-        used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
-        gone = [p for p in [*folder.glob("*/*.pkl"), *folder.glob("*/.*.part")] if p not in used]
+    used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
+    gone = [p for p in _entries_and_parts(folder) if p not in used] if len(lists) >= jobs else []
     for path in [*gone, *lists]:
         path.unlink(missing_ok=True)
     return sum(p.suffix == ".pkl" for p in gone) if len(lists) >= jobs else None
