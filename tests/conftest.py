@@ -6,6 +6,7 @@ tests.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,6 +15,28 @@ import pytest
 
 from railtraj import ostn15
 from railtraj.data import PointTile, Trajectory
+
+
+def pytest_configure(config) -> None:
+    """Under pytest-xdist (scripts/test.sh: a worker per core), hold each worker and the railtraj
+    jobs it starts to its share of the cores. A job uses the cores it may run on
+    (railtraj.matching.threads.available_cores); counting every core of the machine, two workers'
+    jobs side by side ran a thread and a process per machine core each, taking turns: 40 s for
+    two small jobs, 32 s held to one core each."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if worker.startswith("gw") and count > 1 and hasattr(os, "sched_setaffinity"):
+        cores, k = sorted(os.sched_getaffinity(0)), int(worker[2:])
+        os.sched_setaffinity(0, cores[k::count] or [cores[k % len(cores)]])
+
+
+def pytest_collection_modifyitems(items) -> None:
+    """Modules with slow tests first, the others after, each in collection order: the workers
+    (scripts/test.sh runs xdist with ``--no-loadscope-reorder`` so this order holds) then end
+    on short modules together. Ordered by how many tests a module has (xdist's default), the
+    single-test end-to-end modules ran last, one at a time, on one worker."""
+    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow)
+
 
 #: A point on the ground in central London, British National Grid (EPSG:27700), metres.
 BNG_ORIGIN = (530000.0, 180000.0, 20.0)

@@ -18,7 +18,6 @@ output matches the ``serial`` executor's bit for bit.
 from __future__ import annotations
 
 import logging
-import os
 import weakref
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from typing import Any
 
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
+from railtraj.matching.threads import available_cores
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ WORKERS_TIMEOUT_S = 60
 @dataclass
 class DaskConfig:
     name: str = "dask"
-    workers: int = 0  # LocalCluster worker processes (one thread each); 0: one per core
+    workers: int = 0  # LocalCluster worker processes (one thread each); 0: one per core this process may use
     address: str = ""  # an existing scheduler, e.g. tcp://10.0.0.5:8786; empty: a LocalCluster
 
 
@@ -45,7 +45,7 @@ class DaskExecutor:
     """Runs items as dask.distributed tasks; results come back in input order."""
 
     def __init__(self, workers: int = 0, address: str = "") -> None:
-        self.workers = workers or os.cpu_count() or 1
+        self.workers = workers or available_cores()
         self.address = address
         self._client: Any = None
         self._finalizer: weakref.finalize | None = None

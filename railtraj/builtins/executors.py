@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from railtraj.hookspecs import hookimpl
+from railtraj.matching.threads import available_cores
 
 
 @dataclass
@@ -35,7 +36,7 @@ class SerialConfig:
 @dataclass
 class ProcessConfig:
     name: str = "process"
-    workers: int = 0  # 0: one per core
+    workers: int = 0  # 0: one per core this process may use (its CPU affinity)
 
 
 class SerialExecutor:
@@ -100,7 +101,7 @@ class ProcessExecutor:
     order. The pool lives until :meth:`close` (the CLI closes it when the job ends)."""
 
     def __init__(self, workers: int = 0) -> None:
-        self.workers = workers or os.cpu_count() or 1
+        self.workers = workers or available_cores()
         self._pool: ProcessPoolExecutor | None = None
         self._abandoned: list[ProcessPoolExecutor] = []
 

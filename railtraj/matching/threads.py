@@ -15,6 +15,10 @@
   on two). The replica pair's matching 3.3 -> 2.4-2.9 s.
 * In an executor's worker every library stays on its thread: the pool already fills the cores.
   ``threads=1`` (:func:`set_threads`) keeps the main process on one core too.
+* "Every core" means the cores this process may run on (:func:`available_cores`): under
+  ``taskset -c 0`` or a batch scheduler's CPU set, a run that counted the machine's cores started
+  threads and workers that took turns on one core (two test runs side by side, each held to one
+  core: 40 s with a thread and a worker per machine core, 32 s with one).
 
 Results do not depend on any of it.
 """
@@ -31,6 +35,15 @@ MIN_THREADED_QUERY = 3_000
 _threads = -1  # threads this process may use: -1 every core; 1 in the executors' workers
 
 
+def available_cores() -> int:
+    """How many cores this process may run on: its CPU affinity where the system has one
+    (Linux: ``taskset``, cgroup CPU sets, a batch scheduler's allocation), else every core."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 def set_threads(n: int) -> None:
     """Threads of this process's KD-tree queries, window fits and Open3D: ``n`` (0 or -1: every
     core; 1: one, as in an executor's worker). Results do not depend on it."""
@@ -38,17 +51,17 @@ def set_threads(n: int) -> None:
     _threads = -1 if n <= 0 else int(n)
     from railtraj.o3d import o3d
 
-    o3d.utility.set_max_threads(max(_threads, 0))
+    o3d.utility.set_max_threads(_cores())
 
 
 def query_workers(n: int) -> int:
     """``workers`` for a KD-tree query of ``n`` points (results do not depend on it)."""
-    return _threads if n >= MIN_THREADED_QUERY else 1
+    return _cores() if n >= MIN_THREADED_QUERY else 1
 
 
 def _cores() -> int:
     """How many cores this process may use."""
-    return (os.cpu_count() or 1) if _threads == -1 else _threads
+    return available_cores() if _threads == -1 else _threads
 
 
 def map_threads(fn, n: int) -> list:

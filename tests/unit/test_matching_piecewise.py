@@ -33,6 +33,8 @@ from railtraj.matching.piecewise import (
 from railtraj.matching.synthetic import placed, rotation_z, tunnel_tile, tunnel_xyz
 from railtraj.matching.target import build_target
 
+pytestmark = pytest.mark.slow  # most fit the windows of simulated tunnel tiles: 2-11 s each
+
 AXIS = np.array([1.0, 0.0, 0.0])
 
 
@@ -223,7 +225,7 @@ def test_windows_fitted_in_threads_equal_those_fitted_on_one_thread(stretched, m
         return map_threads(window, n)
 
     monkeypatch.setattr("railtraj.matching.piecewise.map_threads", recording)
-    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(threads, "available_cores", lambda: 2)
     fits = {}
     for n in (1, 0):  # threads=1, then every core
         fitted_on.clear()

@@ -61,7 +61,26 @@ def test_results_in_item_order_with_progress_one_pool_and_clean_shutdown():
 def test_the_serial_process_keeps_its_threads():
     from railtraj.matching import threads
 
-    assert threads.query_workers(10**6) == -1 and threads.query_workers(100) == 1
+    assert threads.query_workers(10**6) == threads.available_cores() and threads.query_workers(100) == 1
+
+
+HELD = """
+import os
+os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+from railtraj.builtins.dask_executor import DaskExecutor
+from railtraj.builtins.executors import ProcessExecutor
+from railtraj.matching import threads
+print(ProcessExecutor().workers, DaskExecutor().workers, threads.query_workers(10**6), threads._cores())
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="CPU affinity is Linux only")
+def test_a_job_held_to_one_core_starts_one_worker_and_one_thread():
+    """Under ``taskset -c 0`` (or a batch scheduler's CPU set) "every core" is that one: a worker
+    or thread per machine core would only take turns on it."""
+    res = subprocess.run([sys.executable, "-c", HELD], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.split() == ["1", "1", "1", "1"]
 
 
 JOB = """
@@ -69,7 +88,7 @@ import os, sys, time
 from railtraj.builtins.executors import ProcessExecutor
 
 def slow(x):
-    print(os.getpid(), flush=True)
+    os.write(1, f"{os.getpid()}\\n".encode())  # one write: two workers' lines never interleave
     time.sleep(60)
 
 if __name__ == "__main__":
