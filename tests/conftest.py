@@ -86,3 +86,22 @@ def ostn15_dir(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("ostn15")
     ostn15.ensure_grid(folder)
     return folder
+
+
+@pytest.fixture(scope="session")
+def evo_ape() -> Callable[[Path, Path], tuple[float, float, int]]:
+    """Function: evo's translation APE (no alignment) of the TUM file ``est`` against ``ref``:
+    (RMSE, max, pose count). evo is the trajectory tool users check railtraj's .tum files with."""
+    from evo.core import metrics, sync
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    def ape(ref_path: Path, est_path: Path) -> tuple[float, float, int]:
+        ref, est = read_tum_trajectory_file(str(ref_path)), read_tum_trajectory_file(str(est_path))
+        ref, est = sync.associate_trajectories(ref, est, max_diff=1e-4)
+        error = metrics.APE(metrics.PoseRelation.translation_part)
+        error.process_data((ref, est))
+        return (error.get_statistic(metrics.StatisticsType.rmse),
+                error.get_statistic(metrics.StatisticsType.max), est.num_poses)
+
+    return ape
+

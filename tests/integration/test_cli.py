@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from evo.tools.file_interface import read_tum_trajectory_file
 
+from railtraj.io.outputs import write_trajectory_tum
 from railtraj.io.trajectory_csv import read_trajectory_csv
 
 pytestmark = pytest.mark.slow
@@ -31,9 +33,10 @@ def survey(tmp_path_factory) -> Path:
     return Path(res.survey_dir)
 
 
-def test_job_writes_every_spec_output(survey, tmp_path):
+def test_job_writes_every_spec_output(survey, tmp_path, evo_ape):
     out = tmp_path / "out"
-    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", f"truth_dir={survey.parent / 'truth'}")
+    truth_dir = survey.parent / "truth"
+    res = railtraj(f"survey_dir={survey}", f"out_dir={out}", f"truth_dir={truth_dir}")
     assert res.returncode == 0, res.stderr[-3000:]
     runs = sorted(p.name for p in survey.iterdir() if p.is_dir())
     for run in runs:
@@ -61,10 +64,17 @@ def test_job_writes_every_spec_output(survey, tmp_path):
     assert np.all(np.abs(np.asarray(anchors["lon"], float) + 0.13) < 0.1)
     h_minus_height = np.asarray(anchors["h_ell"], float) - np.asarray(anchors["z"], float)
     assert np.all((44 < h_minus_height) & (h_minus_height < 48))   # OSGM15 geoid in London
-    for run in runs:   # evo-compatible trajectories next to the CSV, one line per epoch
-        rows = [r for r in (out / "trajectories" / f"{run}.tum").read_text().splitlines() if not r.startswith("#")]
-        assert len(rows) == len(
-            read_trajectory_csv(survey / run / "trajectory.csv", run).time)
+    for run in runs:   # evo-compatible trajectories next to the CSV, one line per epoch ...
+        tum = out / "trajectories" / f"{run}.tum"
+        csv = read_trajectory_csv(out / "trajectories" / f"{run}.csv", run)
+        np.testing.assert_allclose(read_tum_trajectory_file(str(tum)).positions_xyz, csv.xyz, rtol=0, atol=1e-6)
+        # ... and evo's APE against the simulator's truth is metrics.json's
+        write_trajectory_tum(tmp_path / f"truth_{run}.tum", read_trajectory_csv(
+            truth_dir / "trajectories" / f"{run}.csv", run))
+        rmse, worst, n = evo_ape(tmp_path / f"truth_{run}.tum", tum)
+        ours = metrics["truth"]["after"]["runs"][run]
+        assert n == ours["n"]
+        assert abs(rmse - ours["rms_3d"]) < 1e-3 and abs(worst - ours["max_3d"]) < 1e-3
     assert not list(out.rglob("*.part")), "temporary files left behind"
 
 
@@ -76,12 +86,6 @@ def test_example_plugin_runs_end_to_end(survey, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["config"]["detector"]["name"] == "voxel_corner"
     assert metrics["counts"]["tile_pairs"] == 1
-
-
-
-
-
-
 
 
 def test_comparative_sweep_runs_all_four_combinations(survey, tmp_path):

@@ -1,31 +1,16 @@
 """OUT/trajectories/<run_id>.tum: read by evo, positions and orientations as in the CSV, and
-evo's APE agrees with railtraj's own scoring against the truth."""
+evo's APE agrees with railtraj's own scoring against the truth (end to end: test_cli.py)."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
 import numpy as np
 import pytest
-from evo.core import metrics, sync
 from evo.tools.file_interface import read_tum_trajectory_file
 
 from railtraj.data import Trajectory
 from railtraj.io.outputs import TUM_COLUMNS, body_to_map_quaternions, write_trajectory_tum
 from railtraj.io.trajectory_csv import read_trajectory_csv, write_trajectory_csv
 from railtraj.sim.score import score_trajectories
-
-
-def _evo_ape(ref_path, est_path) -> tuple[float, float, int]:
-    """evo's translation APE (no alignment) of est against ref: RMSE, max and pose count."""
-    ref, est = read_tum_trajectory_file(str(ref_path)), read_tum_trajectory_file(str(est_path))
-    ref, est = sync.associate_trajectories(ref, est, max_diff=1e-4)
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((ref, est))
-    return (ape.get_statistic(metrics.StatisticsType.rmse),
-            ape.get_statistic(metrics.StatisticsType.max), est.num_poses)
 
 
 def _random_attitudes(n: int, seed: int) -> np.ndarray:
@@ -90,7 +75,7 @@ def test_quaternions_are_vectorised_and_match_single_epochs():
     np.testing.assert_allclose(many[::7], one, atol=1e-12)
 
 
-def test_evo_ape_agrees_with_railtraj_scoring(tmp_path, make_trajectory):
+def test_evo_ape_agrees_with_railtraj_scoring(tmp_path, make_trajectory, evo_ape):
     truth = make_trajectory(n=2000, seed=4, run_id="a", speed=20.0)
     t = (truth.time - truth.time[0]) / np.ptp(truth.time)
     drift = np.column_stack([0.4 * t ** 2, -0.2 * np.sin(3 * t), 0.05 * t])
@@ -100,35 +85,8 @@ def test_evo_ape_agrees_with_railtraj_scoring(tmp_path, make_trajectory):
                      rpy=truth.rpy[keep], run_id="a")
     write_trajectory_tum(tmp_path / "truth.tum", truth)
     write_trajectory_tum(tmp_path / "est.tum", est)
-    rmse, worst, n = _evo_ape(tmp_path / "truth.tum", tmp_path / "est.tum")
+    rmse, worst, n = evo_ape(tmp_path / "truth.tum", tmp_path / "est.tum")
     ours = score_trajectories({"a": truth}, {"a": est})["runs"]["a"]
     assert n == ours["n"] == len(est)
     assert rmse > 0.1   # a real error, so agreeing to 1 mm means something
     assert abs(rmse - ours["rms_3d"]) < 1e-3 and abs(worst - ours["max_3d"]) < 1e-3
-
-
-@pytest.mark.slow
-def test_railtraj_writes_tum_next_to_csv_and_evo_agrees_with_metrics(tmp_path):
-    """End to end on a tiny simulated survey: the CLI writes <run>.tum beside <run>.csv and evo's
-    APE against the simulator's truth equals metrics.json's truth figures."""
-    from railtraj.sim import generate
-
-    res = generate("thesis", tmp_path / "sim", seed=1, size=0.15)
-    out = tmp_path / "out"
-    truth_dir = tmp_path / "sim" / "truth"
-    run = subprocess.run([sys.executable, "-m", "railtraj.cli", f"survey_dir={res.survey_dir}",
-                          f"out_dir={out}", f"truth_dir={truth_dir}", "pipeline=local",
-                          "anchors=false"], capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    scores = json.loads((out / "metrics.json").read_text())["truth"]["after"]["runs"]
-    assert scores
-    for run_id, ours in scores.items():
-        tum = out / "trajectories" / f"{run_id}.tum"
-        csv = read_trajectory_csv(out / "trajectories" / f"{run_id}.csv", run_id)
-        np.testing.assert_allclose(read_tum_trajectory_file(str(tum)).positions_xyz, csv.xyz,
-                                   rtol=0, atol=1e-6)
-        truth = read_trajectory_csv(truth_dir / "trajectories" / f"{run_id}.csv", run_id)
-        write_trajectory_tum(tmp_path / f"truth_{run_id}.tum", truth)
-        rmse, worst, n = _evo_ape(tmp_path / f"truth_{run_id}.tum", tum)
-        assert n == ours["n"]
-        assert abs(rmse - ours["rms_3d"]) < 1e-3 and abs(worst - ours["max_3d"]) < 1e-3
