@@ -63,7 +63,7 @@ class RunConfig:
     anchors: str = "auto"              # auto: write anchors.csv when the grids are found; true; false
     write_tiles: bool = False          # write re-georeferenced tiles to OUT/tiles/<run>/
     truth_dir: str | None = None    # simulator truth, for scoring only (never used to correct)
-    threads: int = 0                   # threads of the main process (KD-trees, window fits, Open3D); 0: all cores
+    threads: int = 0                   # threads of the main process (KD-trees, window fits, Open3D); 0: every core it may use
     resume: bool = True                # reuse finished tiles/pairs of an earlier run in out_dir
     max_memory_gb: float = 0.0         # stop with an error above this resident memory (GiB, with workers); 0: off
     detector: Any = MISSING
