@@ -104,4 +104,3 @@ def evo_ape() -> Callable[[Path, Path], tuple[float, float, int]]:
                 error.get_statistic(metrics.StatisticsType.max), est.num_poses)
 
     return ape
-
