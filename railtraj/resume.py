@@ -188,11 +188,12 @@ def prune_sweep(folder: str | os.PathLike, jobs: int) -> int | None:
     empty the cache of the last good one. A sweep killed before its end keeps everything."""
     folder = Path(folder)
     lists = sorted(folder.glob(f"{USED}*.txt"))
+    complete = len(lists) >= jobs
     used = {folder / line for path in lists for line in path.read_text().splitlines() if line}
-    gone = [p for p in _entries_and_parts(folder) if p not in used] if len(lists) >= jobs else []
+    gone = [p for p in _entries_and_parts(folder) if p not in used] if complete else []
     for path in [*gone, *lists]:
         path.unlink(missing_ok=True)
-    return sum(p.suffix == ".pkl" for p in gone) if len(lists) >= jobs else None
+    return sum(p.suffix == ".pkl" for p in gone) if complete else None
 
 
 #: the job process an executor's worker computes for (None in the job's own process)

@@ -34,8 +34,8 @@ def pytest_collection_modifyitems(items) -> None:
     (scripts/test.sh runs xdist with ``--no-loadscope-reorder`` so this order holds) then end
     on short modules together. Ordered by how many tests a module has (xdist's default), the
     single-test end-to-end modules ran last, one at a time, on one worker."""
-    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow)
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)
 
 
 #: A point on the ground in central London, British National Grid (EPSG:27700), metres.
