@@ -59,6 +59,7 @@ class AlongTrackOptions:
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
     rate_walk: float = 0.001        # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
+    unmeasured_gap: float = 150.0   # m: across a longer stretch without a measured rate, it wanders as the trajectories' sd allows
     rate_gate: float = 4.0          # a pair's rate this many sd off the chain's counts no more than that
     anchor_gate: float = 3.0        # a pair none of whose aliases lies within this many sd of the prediction releases its anchor
     released_walk: float = 2.0      # ... and the rate's wander on the steps either side of it is this many times more
@@ -197,11 +198,11 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
         chain.sort(key=lambda p: p.s)
         own_rate = {p.index: p.rate for p in chain}
         chain = _consensus_rates(chain, options)
-        walks = _rate_walks(chain, options)
+        walks = _unmeasured_walks(chain, _rate_walks(chain, options), options)
         if walks.max() > options.rate_walk:
             log.info("along-track %s~%s: the drift rate wanders %.2f-%.2f mm/m per sqrt(m), measured from its "
-                     "pairs (rate_walk %.2f at least)", run_a, run_b, walks.min() * 1e3, walks.max() * 1e3,
-                     options.rate_walk * 1e3)
+                     "pairs and, where they measure no rate, from the trajectories' sd (rate_walk %.2f at least)",
+                     run_a, run_b, walks.min() * 1e3, walks.max() * 1e3, options.rate_walk * 1e3)
         verdicts, mu, var = _resolve_chain(chain, options, walks)
         periods = _periods_near(chain, options)
         for pair, (shift, margin, verdict), m, v, near in zip(chain, verdicts, mu, var, periods, strict=True):
@@ -777,6 +778,45 @@ def _rate_walks(chain: list[Pair], options: AlongTrackOptions) -> np.ndarray:
     local = np.nanmedian(np.where(around, q_near[None, :], np.nan)[counted], axis=1)
     walks[1:][counted] = np.maximum(walks[1:][counted], np.sqrt(np.maximum(local, 0.0)))
     return walks
+
+
+def _unmeasured_walks(chain: list[Pair], walks: np.ndarray, options: AlongTrackOptions) -> np.ndarray:
+    """``walks`` where the chain measures how its drift rate wanders; across a stretch of more than
+    ``unmeasured_gap`` metres without a trusted rate, at least the wander the trajectories' own
+    sd implies (:func:`_walk_of_the_prior`).
+
+    :func:`_rate_walks` measures the wander from rates at most 150 m apart, so across a longer
+    stretch without one nothing measures it, and ``rate_walk`` alone made the chain sure of
+    offsets its trajectories were not: in a held-out feature-poor tunnel (three runs, a cabinet
+    every 200 m), run b drifted 1.8 m from run a mid-tunnel, where the trajectories' sd of their
+    offset was 1.0 m, and the chain predicted 0.02 +- 0.46 m from the portals' rates. The
+    cabinets' pairs, each right to 2 cm, lay 3.3-4 sd off that and stayed unfixed (run a~run b
+    1.05 m inter-run RMS, 0.81 of the input's)."""
+    s = np.array([p.s for p in chain])
+    measured = s[[p.rate_trusted for p in chain]]
+    before = np.searchsorted(measured, s[:-1], side="right") - 1  # the last measured rate at or before each step
+    after = np.searchsorted(measured, s[1:], side="left")  # the first at or after it
+    padded = np.concatenate([[-np.inf], measured, [np.inf]])
+    unmeasured = np.append(False, padded[after + 1] - padded[before + 1] > options.unmeasured_gap)
+    if not unmeasured.any():
+        return walks
+    return np.where(unmeasured, np.maximum(walks, _walk_of_the_prior(chain, options)), walks)
+
+
+def _walk_of_the_prior(chain: list[Pair], options: AlongTrackOptions) -> float:
+    """How fast the drift rate must wander (m/m per sqrt(m)) for the offset between the anchors to
+    be as uncertain as the trajectories' sd says (``Pair.prior_var``): the smoother's variance with
+    the anchors alone grows as the walk squared, so the walk is the square root of the median,
+    over the pairs the trajectories do not anchor, of their variance over the smoother's at a
+    walk of 1. 0 where nothing anchors the chain or every pair is anchored."""
+    anchor_var = _anchor_variance(chain, options)
+    free = ~np.isfinite(anchor_var)
+    if free.all() or not free.any():
+        return 0.0
+    bare = [replace(p, rate_trusted=False) for p in chain]
+    _, unit = _smooth(bare, np.full(len(chain), np.nan), options, np.ones(len(chain)), anchor_var)
+    prior_var = np.array([p.prior_var for p in chain])
+    return float(np.sqrt(np.median(prior_var[free] / np.maximum(unit[free], 1e-12))))
 
 
 def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair]:

@@ -819,12 +819,12 @@ def _lone_box(ok: tuple[int, ...], *lone: int) -> tuple[list[TileOffset], dict[s
     for k in set(range(len(s))) - set(ok):
         flat = dict(offsets[k].info["alias_profile"], fitness=[0.9] * len(offsets[k].info["alias_profile"]["fitness"]))
         offsets[k] = replace(offsets[k], info=dict(offsets[k].info, alias_profile=flat))
-    ts = -2.0 + 0.05 * np.arange(120)
+    ts = -3.5 + 0.05 * np.arange(141)
     tent = 0.1 + 0.3 * np.clip(1.0 - np.abs(ts) / 0.5, 0.0, None)
     for k in lone:
         o = offsets[k]
         pw = dict(o.info["piecewise"], windows=[[0.0, 0, 0, 0, 1, 2]], fit_cov=(np.diag([0.02, 0.003, 0.003]) ** 2).tolist())
-        profile = {"axis": [1.0, 0.0, 0.0], "start": -2.0, "step": 0.05, "fitness": tent.tolist(), "points": 400,
+        profile = {"axis": [1.0, 0.0, 0.0], "start": -3.5, "step": 0.05, "fitness": tent.tolist(), "points": 400,
                    "source": "marks"}
         d = np.array([_true_along(s[k:k + 1])[0], *o.d[1:]])
         offsets[k] = replace(o, d=d, status="degenerate", info=dict(o.info, piecewise=pw, alias_profile=profile))
@@ -834,8 +834,9 @@ def _lone_box(ok: tuple[int, ...], *lone: int) -> tuple[list[TileOffset], dict[s
 @pytest.mark.parametrize("lone", [4, 8, 6])
 def test_a_lone_box_is_fixed_where_its_search_window_covers_the_prediction(lone):
     """A box's profile shows every alias within the search window (none): it is not charged one
-    half a metre away. 50 m from the portal's pairs the chain predicts it to 0.145 m; in the
-    middle of a 200 m gap, to 0.22 m. Either way the search window (2 m and more either side)
+    half a metre away. No rate is measured over the 200 m between the portals' pairs, so the
+    chain predicts the box as vaguely as the trajectories' sd there allows: to 0.52-0.56 m 50 m
+    from those pairs, to 0.8 m in the middle. Either way the search window (3.5 m either side)
     covers the prediction, and the box is fixed on the truth (coarse: one window, nothing
     checks it along the track, and across and up its curve claims 3 mm: 1 cm at least)."""
     offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), lone)
@@ -847,11 +848,11 @@ def test_a_lone_box_is_fixed_where_its_search_window_covers_the_prediction(lone)
     assert sd[0] >= 0.03 and sd[1] >= 0.01 and sd[2] >= 0.01  # MARKS_PAIR_SD, MARKS_ACROSS_SD
 
 
-@pytest.mark.parametrize(("reach", "fixed"), [(0.5, False), (1.0, True)])
+@pytest.mark.parametrize(("reach", "fixed"), [(1.0, False), (2.0, False), (3.0, True)])
 def test_a_lone_box_searched_too_narrowly_for_its_prediction_is_not_fixed(reach, fixed):
-    """In the middle of the gap (predicted to 0.22 m) a box whose profile was searched only
-    0.5 m either side says nothing of the shifts beyond: the true offset may lie there, and the
-    box stays unfixed. Searched 1 m either side (4.5 sd), it is fixed."""
+    """In the middle of the gap (predicted to 0.8 m) a box whose profile was searched only
+    1-2 m either side says nothing of the shifts beyond: the true offset may lie there, and the
+    box stays unfixed. Searched 3 m either side, it is fixed."""
     offsets, trajs, s = _lone_box((0, 1, 2, 10, 11), 6)
     profile = offsets[6].info["alias_profile"]
     ts = profile["start"] + profile["step"] * np.arange(len(profile["fitness"]))
@@ -883,6 +884,33 @@ def test_a_lone_marks_unseen_alias_lies_past_its_profiles_end_toward_the_predict
     options = AlongTrackOptions()
     verdicts, _, _ = _resolve_chain(chain, options, _rate_walks(chain, options))
     assert (verdicts[2][2] == "resolved") == fixed, verdicts[2]
+
+
+@pytest.mark.parametrize(("unmeasured_gap", "fixed"), [(150.0, True), (1e9, False)])
+def test_where_no_rate_is_measured_the_chain_is_no_surer_than_the_trajectories(unmeasured_gap, fixed):
+    """A 300 m feature-poor tunnel between two cuttings: rates only at the cuttings' pairs, three
+    boxes inside, each searched 3 m either side. The runs drift 1.5 m apart mid-tunnel where
+    their trajectories report 1.0 m (a smoother's envelope, zero at the portals). With the drift
+    rate's least wander (``rate_walk``) the chain predicted the first box to 0.29 m, 3.4 sd from
+    where it is, and fixed none. Across a stretch without rates the rate wanders as the
+    trajectories' sd implies, and every box is fixed on the truth."""
+    from railtraj.alongtrack import Pair, _rate_walks, _resolve_chain, _unmeasured_walks
+
+    u = lambda s: np.clip((s - 30.0) / 300.0, 0.0, 1.0)  # noqa: E731
+    envelope = lambda s: (4.0 * u(s) * (1.0 - u(s))) ** 1.5  # noqa: E731
+
+    def pair(index: int, s: float, **kwargs) -> Pair:
+        true = 1.5 * envelope(s)
+        return Pair(index, s, np.array([true]), np.array([0.0]), np.array([0.0]), 0.0, 0.02,
+                    (0.02 + envelope(s)) ** 2, u0=true, **kwargs)
+
+    boxes = [pair(k, s, rate_trusted=False, lone_mark=True, profile_ends=1.5 * envelope(s) + np.array([-3.0, 3.0]))
+             for k, s in enumerate((105.0, 180.0, 255.0), start=2)]
+    chain = [pair(0, 0.0), pair(1, 25.0), *boxes, pair(5, 335.0), pair(6, 360.0)]
+    options = AlongTrackOptions(unmeasured_gap=unmeasured_gap)
+    verdicts, mu, _ = _resolve_chain(chain, options, _unmeasured_walks(chain, _rate_walks(chain, options), options))
+    assert [verdicts[k][2] == "resolved" for k in (2, 3, 4)] == [fixed] * 3, verdicts
+    assert not fixed or np.allclose(mu[2:5], 1.5 * envelope(np.array([105.0, 180.0, 255.0])), atol=0.01)
 
 
 def test_every_pair_the_chains_keep_claims_five_millimetres_across_and_up_at_least():
