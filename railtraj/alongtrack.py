@@ -793,11 +793,10 @@ def _unmeasured_walks(chain: list[Pair], walks: np.ndarray, options: AlongTrackO
     cabinets' pairs, each right to 2 cm, lay 3.3-4 sd off that and stayed unfixed (run a~run b
     1.05 m inter-run RMS, 0.81 of the input's)."""
     s = np.array([p.s for p in chain])
-    measured = s[[p.rate_trusted for p in chain]]
-    before = np.searchsorted(measured, s[:-1], side="right") - 1  # the last measured rate at or before each step
-    after = np.searchsorted(measured, s[1:], side="left")  # the first at or after it
-    padded = np.concatenate([[-np.inf], measured, [np.inf]])
-    unmeasured = np.append(False, padded[after + 1] - padded[before + 1] > options.unmeasured_gap)
+    measured = np.concatenate([[-np.inf], s[[p.rate_trusted for p in chain]], [np.inf]])
+    before = measured[np.searchsorted(measured, s[:-1], side="right") - 1]  # the last rate at or before each step
+    after = measured[np.searchsorted(measured, s[1:], side="left")]  # the first at or after it
+    unmeasured = np.append(False, after - before > options.unmeasured_gap)  # entry i: the step from pair i - 1
     if not unmeasured.any():
         return walks
     return np.where(unmeasured, np.maximum(walks, _walk_of_the_prior(chain, options)), walks)
