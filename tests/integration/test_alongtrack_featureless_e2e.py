@@ -1,8 +1,8 @@
 """End to end on the demo's mixed tunnel built with commensurate ribs (1.5 m) and sleepers
-(0.6 m), at 0.6 size (its featureless circular section 100 m long; 131 s against 248 s at full
-size, where it is 170 m): the pairs at that section's edges are where an alias was once
-accepted. Against the truth: every run pair ten times closer, no ``ok`` offset more than 5 cm
-off.
+(0.6 m), at 0.6 size (its featureless circular section 100 m long), its two runs on the same
+track (run_c, on the other track, doubled the time: 212 s alone against 102 s, and the demo's
+end-to-end tests have it): the pairs at that section's edges are where an alias was once
+accepted. Against the truth: the runs ten times closer, no ``ok`` offset more than 5 cm off.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def mixed_commensurate(tmp_path_factory) -> Path:
     scn = get_scenario("mixed")
-    scn = replace(scn, geometry=replace(scn.geometry, rib_spacing=1.5, sleeper_spacing=0.6))
+    scn = replace(scn, geometry=replace(scn.geometry, rib_spacing=1.5, sleeper_spacing=0.6), runs=scn.runs[:2])
     return generate(scn, tmp_path_factory.mktemp("mixed_commensurate"), seed=31, size=0.6).survey_dir
 
 
@@ -34,12 +34,13 @@ def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensura
     profiles did not have, and bent the curves of the pairs at its ends: 0.224 m inter-run at
     most (0.11 of the input's), 0.097 m since they give across and up only. At 0.6 size
     (session 25): 0.015-0.023 m RMS, 0.030-0.062 m max per run pair, 11 ok pairs (worst 1.4 cm),
-    26 coarse."""
+    26 coarse. Its two runs on one track (session 46): 1.118 / 1.861 -> 0.010 / 0.021 m, 8 ok pairs
+    (worst 1.0 cm), 13 coarse."""
     metrics = _run(mixed_commensurate, tmp_path / "out")
     for key, before in metrics["truth"]["before"]["consistency"].items():
         after = metrics["truth"]["after"]["consistency"][key]
         assert after["rms_h"] < 0.1 * before["rms_h"] and after["max_h"] < 0.1 * before["max_h"], key
     score = metrics["truth"]["tile_offsets"]
-    assert score["ok_pairs"] >= 10
+    assert score["ok_pairs"] >= 5
     assert max(score["max_abs_m"]) <= 0.05, score
     assert sum(r["status"] == "coarse" for r in metrics["adjustment"]["alongtrack"]) >= 5

@@ -24,7 +24,8 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def thesis(tmp_path_factory) -> Path:
-    return generate("thesis", tmp_path_factory.mktemp("thesis"), seed=0).survey_dir
+    """At 0.7 size (73 s alone): 10 ok pairs, worst 1.5 cm, 90 % within 1 cm."""
+    return generate("thesis", tmp_path_factory.mktemp("thesis"), seed=0, size=0.7).survey_dir
 
 
 def test_ok_offsets_are_within_a_centimetre_of_the_truth(thesis, tmp_path):
