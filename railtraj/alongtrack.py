@@ -78,6 +78,7 @@ class AlongTrackOptions:
     max_pair_sd: float = 0.02      # m: a vaguer pair is never fixed, nor anchors its neighbours
     max_ok_sd: float = 0.015       # m: a vaguer fixed pair anchors the chain but is not ok (5 cm is 3.3 sd)
     sampling_sd: float = 0.15      # along-track sd per metre of profile gap: where edges are seen (both runs)
+    resolved_sd: float = 0.05      # m: a stretch counts as resolved where the chain predicts the offset this well (coverage report)
 
 
 @dataclass(frozen=True)

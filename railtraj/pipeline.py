@@ -29,6 +29,7 @@ from railtraj.alongtrack import (
     resolve_along_track,
     used_along,
 )
+from railtraj.alongtrack_coverage import along_track_coverage
 from railtraj.consistency import check_survey
 from railtraj.control import observe_control
 from railtraj.data import (
@@ -176,7 +177,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     t0 = time.perf_counter()
     results, before_chains, alongtrack = _along_track(matched, trajectories, options)
     clock["alongtrack"] = time.perf_counter() - t0
-    along_notes, searched = [], options.max_misalignment_m
+    along_notes, searched, coverage = [], options.max_misalignment_m, None
     resolved = [r.offset for r in results]
     if options.alongtrack.enabled:
         reach = beyond_reach(alongtrack, resolved, searched)
@@ -190,7 +191,9 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             pairs_reused += more
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
-        along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach)]
+        coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
+                                                       options.alongtrack.resolved_sd)
+        along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach), coverage_note]
     ok = [o for o in resolved if o.ok]
 
     t0 = time.perf_counter()
@@ -208,6 +211,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
+    if coverage is not None:
+        adjustment["alongtrack_coverage"] = coverage
     adjustment["sd_check"] = checked.summary
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,

@@ -44,3 +44,8 @@ def test_no_ok_pair_is_off_at_the_edge_of_a_featureless_section(mixed_commensura
     assert score["ok_pairs"] >= 5
     assert max(score["max_abs_m"]) <= 0.05, score
     assert sum(r["status"] == "coarse" for r in metrics["adjustment"]["alongtrack"]) >= 5
+    # the tile pairs of the circular section show nothing along the track: the coverage says
+    # so (a 62 m stretch, session 46), and the runs agree to 2 cm there only by interpolation
+    coverage = metrics["adjustment"]["alongtrack_coverage"]["run_a~run_b"]
+    assert 0.5 <= coverage["share"] < 1.0 and coverage["unresolved"], coverage
+    assert any("along-track: the runs' offset is resolved" in n for n in metrics["notes"])
