@@ -193,6 +193,16 @@ def adjustment(metrics: dict[str, Any]) -> str:
         obs = [{"observations": k, **v} for k, v in adj["observations"].items()]
         parts.append(f"{table(obs)}<p>{adj.get('gnc_iterations', 0)} robust iterations (GNC, "
                      f"truncated least squares), {adj.get('knots', 0)} knots.</p>")
+    if adj.get("alongtrack_coverage"):
+        rows = [{"run pair": pair, "resolved (m)": f"{c['resolved_m']:.0f} of {c['length_m']:.0f}",
+                 "share": f"{c['share']:.0%}",
+                 "not resolved: run b's time (s), length (m), chain's sd (m)": "; ".join(
+                     f"{u['time_b'][0]:.1f}-{u['time_b'][1]:.1f}, {u['length_m']:.0f}"
+                     + ("" if u["worst_sd_m"] is None else f", {u['worst_sd_m']:.3f}") for u in c["unresolved"]) or "-"}
+                for pair, c in adj["alongtrack_coverage"].items()]
+        parts.append("<h4>Where the runs' along-track offset is resolved</h4><p>fixed by a tile pair, or "
+                     "predicted (or reported) within pipeline.alongtrack.resolved_sd; elsewhere the runs are "
+                     f"placed across the track and in height only</p>{table(rows)}")
     if adj.get("alongtrack"):
         along = [{k: v for k, v in r.items() if k != "candidate_shifts_m"}
                  for r in adj["alongtrack"]]

@@ -96,3 +96,15 @@ def test_report_lists_runs_whose_reported_sd_was_widened():
     assert "Reported sd contradicted" in html and "run_a" in html and "run_b, run_c" in html
     unbiased = _survey(biased=False)
     assert adjustment({"adjustment": {"sd_check": check_reported_sd(*unbiased[:2]).summary}}) == ""
+
+
+def test_report_names_the_stretches_not_resolved_along_the_track():
+    from railtraj.report.html import adjustment
+
+    coverage = {"run_a~run_b": {"length_m": 380.0, "resolved_m": 106.2, "share": 0.279, "unresolved": [
+        {"time_b": [300616.63, 300635.58], "length_m": 177.1, "worst_sd_m": 0.072},
+        {"time_b": [300604.28, 300606.36], "length_m": 20.8, "worst_sd_m": None}]},
+        "run_a~run_c": {"length_m": 379.2, "resolved_m": 379.2, "share": 1.0, "unresolved": []}}
+    html = adjustment({"adjustment": {"alongtrack_coverage": coverage}})
+    assert "106 of 380" in html and "28%" in html and "300616.6-300635.6, 177, 0.072" in html
+    assert "300604.3-300606.4, 21<" in html and "379 of 379" in html
