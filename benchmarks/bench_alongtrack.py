@@ -129,6 +129,8 @@ def score(survey_dir: Path, result) -> dict:
     ties = [np.linalg.norm(tie_errors(truth.trajectories, result.trajectories, t, poses), axis=1) for t in result.ties]
     ties = np.concatenate(ties) if ties else np.zeros(0)
     used = sum(used_along(o) for o in result.offsets)
+    coverage = result.adjustment.get("alongtrack_coverage") or {}
+    length = sum(c["length_m"] for c in coverage.values())
     return {
         "h_before": pool(before, "rms_h"), "hmax_before": maxi(before, "max_h"),
         "h_after": pool(after, "rms_h"), "hmax_after": maxi(after, "max_h"), "v_after": pool(after, "rms_v"),
@@ -141,6 +143,7 @@ def score(survey_dir: Path, result) -> dict:
         "worst_coarse": float(max((np.linalg.norm(e) for e in coarse.values()), default=0.0)), "coarse": len(coarse),
         "worst_tie": float(ties.max()) if len(ties) else 0.0, "ties_over_5cm": int((ties > 0.05).sum()),
         "ties": len(ties), "used_share": used / max(len(result.offsets), 1),
+        "resolved_share": sum(c["resolved_m"] for c in coverage.values()) / length if length else 0.0,
         **honesty(truth.trajectories, result.corrected),
     }
 
@@ -182,8 +185,8 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     print("| scenario | seed | inter-run h RMS / max before -> after (m) | v RMS before -> after | "
           "abs h / v RMS before -> after | abs h bound, gap | worst ok offset | coarse: n, worst | worst tie | ties > 5 cm | "
-          "along used | beyond 3 sd, worst | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "along used | length resolved | beyond 3 sd, worst | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for scenario in args.scenarios:
         for seed in args.seeds:
             survey = survey_for(scenario, seed, args.size, tuple(args.vary))
@@ -201,7 +204,7 @@ def main() -> None:
                   f"{s['hmax_after']:.3f} | {s['v_before']:.3f} -> {s['v_after']:.3f} | {s['abs_h_before']:.2f} / "
                   f"{s['abs_v_before']:.2f} -> {s['abs_h_after']:.3f} / {s['abs_v_after']:.3f} | {s['bound_h']:.3f}, {s['bound_gap']:.3f} | "
                   f"{s['worst_ok']:.3f} | {s['coarse']}, {s['worst_coarse']:.3f} | {s['worst_tie']:.3f} | {s['ties_over_5cm']} of {s['ties']} | "
-                  f"{s['used_share']:.0%} | {s['beyond_3sd']:.1%}, {s['worst_z']:.1f} | {time.perf_counter() - t0:.0f} |",
+                  f"{s['used_share']:.0%} | {s['resolved_share']:.0%} | {s['beyond_3sd']:.1%}, {s['worst_z']:.1f} | {time.perf_counter() - t0:.0f} |",
                   flush=True)
 
 
