@@ -45,14 +45,15 @@ def test_a_stretch_without_a_fixed_pair_or_a_sure_prediction_is_reported_with_ru
     sd = [0.01] * 4 + [0.03, 0.2, None, 0.4, None, 0.3, 0.2, 0.04] + [0.01] * 4
     coverage, note = along_track_coverage(*_chain(statuses, sd), RUNS, resolved_sd=0.05)
     row = coverage["run_a~run_b"]
-    # the 6 unresolved pairs own 150 m (125-275 m), the other 10 the rest of 400 m
-    assert row["length_m"] == pytest.approx(400.0) and row["resolved_m"] == pytest.approx(250.0)
-    assert row["share"] == pytest.approx(0.625)
+    # the 6 unresolved pairs (137.5-262.5 m) own the track up to the resolved pairs either side
+    # (112.5 and 287.5 m): 175 m; the other 10 the rest of 400 m
+    assert row["length_m"] == pytest.approx(400.0) and row["resolved_m"] == pytest.approx(225.0)
+    assert row["share"] == pytest.approx(0.5625, abs=1e-3)
     [stretch] = row["unresolved"]
-    assert stretch["length_m"] == pytest.approx(150.0) and stretch["worst_sd_m"] == pytest.approx(0.4)
-    # run b drives west: 275 m east is 12.5 s after its start, 125 m 27.5 s
-    assert stretch["time_b"] == pytest.approx([2012.5, 2027.5])
-    assert note is not None and "run_a~run_b over 250 of 400 m" in note and "2012.5-2027.5 s (150 m)" in note
+    assert stretch["length_m"] == pytest.approx(175.0) and stretch["worst_sd_m"] == pytest.approx(0.4)
+    # run b drives west: 287.5 m east is 11.25 s after its start, 112.5 m 28.75 s
+    assert stretch["time_b"] == pytest.approx([2011.25, 2028.75])
+    assert note is not None and "run_a~run_b over 225 of 400 m" in note and "2011.2-2028.8 s (175 m)" in note
 
 
 def test_where_the_runs_report_a_small_sd_a_pair_with_nothing_to_match_is_no_gap():
@@ -61,8 +62,8 @@ def test_where_the_runs_report_a_small_sd_a_pair_with_nothing_to_match_is_no_gap
     coverage, note = along_track_coverage(*_chain(statuses, [None] + [0.01] * 14 + [None]), RUNS, resolved_sd=0.05)
     assert coverage["run_a~run_b"]["share"] == 1.0 and coverage["run_a~run_b"]["unresolved"] == []
     assert note is None
-    # ... but in a tunnel, where their sd is large, the same pairs are gaps
+    # ... but in a tunnel, where their sd is large, the same pairs are gaps, up to the next pair
     vague = {r: _run(r, t.time[0], 1.0 if r == "run_a" else -1.0, sd_open=0.5) for r, t in RUNS.items()}
     coverage, note = along_track_coverage(*_chain(statuses, [None] + [0.01] * 14 + [None]), vague, resolved_sd=0.05)
-    assert [s["length_m"] for s in coverage["run_a~run_b"]["unresolved"]] == pytest.approx([25.0, 25.0])
+    assert [s["length_m"] for s in coverage["run_a~run_b"]["unresolved"]] == pytest.approx([37.5, 37.5])
     assert note is not None
