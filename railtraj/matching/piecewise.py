@@ -327,7 +327,7 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                    search: float = 0.1, step: float = 0.005, tau: float = 0.05,
                    min_points: int = 1_500, min_windows: int = 4, min_length: float = 2.0,
                    marks: LazyMarks | None = None, vote_window: tuple[np.ndarray, float] | None = None,
-                   across_target: PlaneTarget | None = None) -> tuple[np.ndarray, int]:
+                   across_target: PlaneTarget | None = None, marks_first: bool = False) -> tuple[np.ndarray, int]:
     """Offset of every window of about ``length`` metres of ``moving`` (at along-track positions
     ``s``): rows ``s_mean, dx, dy, dz, along``, in order along the track; windows without enough
     points are left out. Also how many edge windows a mark overrode (:func:`_off_the_marks`).
@@ -361,6 +361,11 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     (:func:`railtraj.matching.target.filled_target`: sparse far walls with planes) fits each
     window's across and up again from there, its along-track offset held (in it, tilted coarse
     planes drew a window's along-track offset onto a rib 1.5 m away).
+
+    With ``marks_first`` a window with edges is placed by marks too where it holds some, and
+    where any is, the edges count across and up only: edges that repeat (a tube's ring joints)
+    place a window on the alias nearest its start, a box on its own (asked by
+    :mod:`railtraj.matching.resolve` where a pair's profile shows no alias of its own).
 
     A window placed by marks is moved along the track from its start, metres at times, and is
     fitted across and up again there (the wall turns on a curve). Where marks alone place the
@@ -426,6 +431,11 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
                 return [s_mark, *placed, 2.0]
             return [s_mean, *fit.d, 0.0]
         t = profile_minimum(ts, costs.mean(axis=1))
+        if marks_first and np.isfinite(t):
+            s_mark, t_mark = marked(lo, hi, fit.d)
+            placed = across_at(pts, fit.d + t_mark * axis) if np.isfinite(t_mark) else None
+            if placed is not None:
+                return [s_mark, *placed, 2.0]
         return [s_mean, *(fit.d + t * axis), 1.0] if np.isfinite(t) else None
 
     def fitted(bounds: list[tuple[float, float, int]]) -> list:
@@ -451,6 +461,8 @@ def window_offsets(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, d_sta
     windows = np.array([row for row, _ in kept], float).reshape(-1, 5)
     off_marks = _off_the_marks(windows, axis)
     windows[off_marks, 4] = 0  # on another alias than the marks: across and up only
+    if marks_first and (windows[:, 4] == 2).any():  # repeating edges: the marks alone place the pair along
+        windows[windows[:, 4] == 1, 4] = 0
     plain = np.flatnonzero(windows[:, 4] == 0)
     if (windows[:, 4] == 2).any() and not (windows[:, 4] == 1).any() and len(plain):
         # along the track the pair rests on marks, often metres from where the other windows

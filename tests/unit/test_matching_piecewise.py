@@ -543,3 +543,25 @@ def test_a_mark_metres_from_the_start_on_a_curve_places_the_pair_across_where_it
     np.testing.assert_allclose(fit.windows[by_mark, 1], d[0], atol=0.03)  # to the scan lines
     np.testing.assert_allclose(fit.windows[:, 2:4], np.tile(d[1:], (len(fit.windows), 1)), atol=0.005)
     np.testing.assert_allclose(fit.d_ref[1:], d[1:], atol=0.005)
+
+
+@pytest.mark.parametrize("marks_first", [False, True])
+def test_a_mark_among_repeating_edges_places_the_pair_when_asked_first(marks_first):
+    """Ring joints every 1.25 m and one stain on the lining; the votes an alias (1.25 m) off.
+    The windows' valleys sit on the joint nearest where they start: the alias. Asked first (as
+    the matcher does where a pair's profile shows no alias of its own), the stain's window is
+    placed by it and the joints count across and up only: the pair sits on the truth."""
+    a_xyz, b_true = _ring_jointed(0, 24, 0, lines=0.05), _ring_jointed(0, 24, 10, lines=0.05)
+    marks = [((13.6, -3.0, 1.5), 1.8)]
+    a_int, b_int = _marked(a_xyz, marks, 1), _marked(b_true, marks, 2)
+    d0 = np.array([0.4, 0.02, -0.01])
+    b_xyz = b_true - d0
+    start = d0 + 1.25 * AXIS
+    fit = piecewise_fit(build_target(a_xyz), a_xyz, b_xyz, start, length=5.0, tree=reference_tree(a_xyz),
+                        intensity=(a_int, b_int), vote_window=(start, 3.0), marks_first=marks_first)
+    by_marks = fit.windows[:, 5] == 2
+    if not marks_first:
+        assert not by_marks.any() and abs(fit.d_ref[0] - start[0]) < 0.03  # on the alias
+        return
+    assert by_marks.sum() == 1 and not (fit.windows[:, 5] == 1).any() and fit.on_marks
+    assert abs(fit.d_ref[0] - d0[0]) < 0.03 and np.abs(fit.d_ref[1:] - d0[1:]).max() < 0.005
