@@ -185,7 +185,7 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     offsets = [on_travel_direction(o, trajectories) for o in offsets]
     out, report = list(offsets), []
     chains: dict[tuple[str, str], list[Pair]] = {}
-    travelled = {r: _travelled(t) for r, t in trajectories.items()}
+    travelled = {r: metres_travelled(t) for r, t in trajectories.items()}
     for k, o in enumerate(offsets):
         pair = _candidates(k, o, trajectories, travelled, options)
         if isinstance(pair, Pair):
@@ -1234,7 +1234,7 @@ def _direction(traj: Trajectory, t: float) -> np.ndarray:
     return v / n if n > 0 else np.array([1.0, 0.0, 0.0])
 
 
-def _travelled(traj: Trajectory) -> np.ndarray:
+def metres_travelled(traj: Trajectory) -> np.ndarray:
     """Metres travelled (in plan) by the run at each epoch."""
     step = np.linalg.norm(np.diff(traj.xyz[:, :2], axis=0), axis=1)
     return np.concatenate([[0.0], np.cumsum(step)])

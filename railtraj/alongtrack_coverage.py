@@ -25,7 +25,7 @@ import logging
 
 import numpy as np
 
-from railtraj.alongtrack import used_along
+from railtraj.alongtrack import metres_travelled, used_along
 from railtraj.data import TileOffset, Trajectory
 
 log = logging.getLogger(__name__)
@@ -48,7 +48,7 @@ def along_track_coverage(offsets: list[TileOffset], report: list[dict], trajecto
     coverage, noted = {}, []
     for (run_a, run_b), pairs in sorted(by_run_pair.items()):
         traj = trajectories[run_b]
-        travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz[:, :2], axis=0), axis=1))])
+        travelled = metres_travelled(traj)
         times = np.array([offsets[k].info["time_b"] for k in pairs], float)
         s = np.interp(times, traj.time, travelled)
         order = np.argsort(s)
@@ -83,10 +83,10 @@ def _reported_sd(traj: Trajectory | None, times: list[float]) -> np.ndarray:
     """The run's reported horizontal sd (the larger of x and y) at ``times``; inf where it
     reports none."""
     t = np.asarray(times, float)
-    if traj is None or traj.sd is None:
+    sd = traj.sd_at(np.nan_to_num(t)) if traj is not None else None
+    if sd is None:
         return np.full(len(t), np.inf)
-    horizontal = np.max(traj.sd[:, :2], axis=1)
-    return np.where(np.isfinite(t), np.interp(np.nan_to_num(t), traj.time, horizontal), np.inf)
+    return np.where(np.isfinite(t), sd[:, :2].max(axis=1), np.inf)
 
 
 def _stretches(s: np.ndarray, resolved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
