@@ -164,6 +164,8 @@ class Pair:
     # (2,) for a lone mark: the along-track offsets of its profile's two ends, past which lies
     # the nearest alias it cannot have shown (see _candidates)
     profile_ends: np.ndarray | None = None
+    # m: spacings of the evenly spaced trains among its peaks (Peaks.trains)
+    trains: tuple[float, ...] = ()
 
 
 class Peaks(NamedTuple):
@@ -174,6 +176,7 @@ class Peaks(NamedTuple):
     misfit: np.ndarray  # (k,) 1 - fitness at each
     period: float  # m: the profile's own alias spacing, or ``min_period`` where it shows none
     width: np.ndarray  # (k,) m: how wide each peak's top is (:func:`_peak_top_width`), a step at least
+    trains: tuple[float, ...] = ()  # m: spacings of the evenly spaced trains among them (:func:`_trains`)
 
 
 def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Trajectory],
@@ -366,7 +369,7 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
         return NO_EVIDENCE  # no peak stands out: the pair says nothing along the track
     if edges is not None and found is not edges:
         found = found._replace(shift=_on_edges(found, edges.shift, float(prof["step"])))
-    shift, movable, m, period, width = found
+    shift, movable, m, period, width, trains = found
     lone_mark = found is not edges and prof.get("source") == "marks" and len(shift) == 1
     if _unchecked_fit(o):
         movable = np.zeros_like(movable)
@@ -390,7 +393,8 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
-                rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark, profile_ends=ends)
+                rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark, profile_ends=ends,
+                trains=() if lone_mark else trains)
 
 
 def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
@@ -453,7 +457,7 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
         significant |= on & (props["prominences"] >= options.lattice_significance * peak_noise)
         movable |= on & (local >= options.lattice_significance * local_noise)
     peaks, movable, shift = peaks[significant], movable[significant], shift[significant]
-    period = _alias_period(shift, options.min_period)
+    period, trains = _alias_period(shift, options.min_period), _trains(shift, options.min_period)
     if len(peaks):
         keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
         peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
@@ -467,7 +471,7 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     shift, first = np.unique(shift, return_index=True)
     peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
     top_sd = measured[peaks] if len(measured) == len(fitness) else np.sqrt(misfit[peaks] / n_points)
-    return Peaks(shift, movable, misfit[peaks], period, _peak_top_width(fitness, peaks, top_sd) * prof["step"])
+    return Peaks(shift, movable, misfit[peaks], period, _peak_top_width(fitness, peaks, top_sd) * prof["step"], trains)
 
 
 def _peak_top_width(fitness: np.ndarray, peaks: np.ndarray, top_sd: np.ndarray) -> np.ndarray:
@@ -505,6 +509,31 @@ def _peak_gaps(shift: np.ndarray, min_period: float) -> np.ndarray:
     """Gaps (m) between a profile's peaks in order, the matcher's fit (shift 0) among them; a
     peak within a quarter of ``min_period`` of that fit is that fit."""
     return np.diff(np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0)))
+
+
+def _trains(shift: np.ndarray, min_period: float) -> tuple[float, ...]:
+    """Spacings (m) of the evenly spaced trains among a profile's peaks (the matcher's fit,
+    shift 0, among them): each peak at least ``min_period`` from that fit whose whole multiples
+    hold two peaks more, within ``LATTICE_TOLERANCE`` (0 and the peak itself, say, and one
+    more either side), each spacing once.
+
+    Ribs and sleepers give two trains that interleave, so the gaps between the peaks are not
+    even and :func:`_alias_period` sees no period. Held-out mixed 4602 (ribs 1.5 m, sleepers
+    0.65 m): a pair's peaks lay -0.48, 0.81, 1.48, 2.10, 2.94, 3.41 and 4.51 m from its fit,
+    which was a rib alias; the chain moved it 1.48 m onto the truth (1.1 cm off), but its
+    neighbours showed only the sleepers' 0.65 m, so the move was taken for one off every period
+    by 19 cm (:func:`_placement_variance`), its sd with it, and the runs stayed 9 cm apart along
+    the track beside it."""
+    s = np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0))
+    found: list[float] = []
+    for base in np.abs(s[np.abs(s) >= min_period]):  # a handful of peaks
+        n = np.round(s / base)
+        on = (n != 0) & (_off_multiple(s, base) <= LATTICE_TOLERANCE * base)
+        if len(np.unique(n[on])) >= 2:
+            spacing = float(np.mean(np.abs(s[on] / n[on])))
+            if not any(abs(spacing - f) <= LATTICE_TOLERANCE * f for f in found):
+                found.append(spacing)
+    return tuple(sorted(found))
 
 
 def _lattice_period(shift: np.ndarray, min_period: float) -> float | None:
@@ -581,7 +610,13 @@ def _with_drift_rate(o: TileOffset, pair: Pair, trajectories: dict[str, Trajecto
     correction smoothly from one to the next. In a ring-jointed tube 280 m passed between two
     fixed pairs (offsets 0.07 and 0.26 m) while the runs' offset fell to -0.52 m between, so the
     bridge moved the runs further apart there (0.71 m) than the input had them (0.52 m); ten
-    unresolved pairs there each measured the offset's rate."""
+    unresolved pairs there each measured the offset's rate.
+
+    Not for a coarse pair (fixed, one offset known to centimetres): its rate, within its sd,
+    moves the correction beside it by that sd times the distance to the next pair. Tried on
+    held-out surveys: all-coarse commensurate_fast 1061 0.020 / 0.063 -> 0.016 / 0.055 m, but
+    thesis 4606 0.012 / 0.031 -> 0.014 / 0.050 and commensurate 1053 0.015 / 0.042 -> 0.018 /
+    0.046 (one rate 1 sd off bent the correction 4 cm, 20 m away)."""
     pw = o.info["piecewise"]
     s = _used_windows(pw)
     if o.status != "ambiguous" or not np.isfinite(o.cov).all() or len(s) < 2 or np.ptp(s) < options.drift_rate_span:
@@ -975,7 +1010,9 @@ def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongT
       to an edge peak 14 cm short of the ring's multiple, and sat 12.9 cm off claiming 2.6 cm
       (now 14 cm: the runs' inter-run error there went from 0.037 / 0.141 to 0.018 / 0.065 m).
       Of 420 moved pairs on 36 simulated surveys, 340 lie within 2 cm of a multiple (1.0 cm
-      RMS off the truth), 24 within 2-5 cm (2.1 cm RMS, 4.1 at most).
+      RMS off the truth), 24 within 2-5 cm (2.1 cm RMS, 4.1 at most). The trains among the
+      pair's own peaks (``Pair.trains``) count too: ribs and sleepers interleave, and its
+      neighbours may show the sleepers' period only (held-out mixed 4602, :func:`_trains`).
     * **The profile gap.** Each run sees an edge only where a profile steps onto it, so it places
       the edge somewhere within one gap (speed over profile rate). Where ribs and sleepers repeat
       in step with the profiles (1.5 m is 30 gaps of 5 cm), every edge of a tile is sampled at
@@ -999,6 +1036,7 @@ def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongT
     chosen = pair.shift == shift
     width = float(pair.width[chosen][0]) if pair.width is not None and chosen.any() else step
     extra = max(width, step) ** 2 / 12.0 if abs(shift) > 1e-9 else 0.0
+    periods = np.concatenate([periods, pair.trains])
     if abs(shift) > 1e-9 and len(periods) and not pair.lone_mark:
         extra += float(np.min(_off_multiple(shift, periods))) ** 2
     extra += (options.sampling_sd * _profile_gap(o)) ** 2

@@ -386,7 +386,7 @@ def test_the_edge_profile_shows_the_ring_joints_the_fitness_profile_misses():
     assert seen is None or len(seen[0]) <= 1
     edges = edge_profile(target, reference_tree(a_xyz), b_xyz, fit, start, 3.0, tau=0.05)
     assert len(edges["noise"]) == len(edges["fitness"]) and edges["source"] == "edges"
-    shift, movable, misfit, period, _ = _profile_peaks(edges, options)
+    shift, movable = (peaks := _profile_peaks(edges, options)).shift, peaks.movable
     lattice = -1.25 * np.round(-shift / 1.25)
     assert len(shift) >= 3 and movable.all()
     np.testing.assert_allclose(shift, lattice, atol=0.05)  # every peak is a ring joint away
