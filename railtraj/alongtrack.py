@@ -513,9 +513,9 @@ def _peak_gaps(shift: np.ndarray, min_period: float) -> np.ndarray:
 
 def _trains(shift: np.ndarray, min_period: float) -> tuple[float, ...]:
     """Spacings (m) of the evenly spaced trains among a profile's peaks (the matcher's fit,
-    shift 0, among them): each peak at least ``min_period`` from that fit whose whole multiples
-    hold two peaks more, within ``LATTICE_TOLERANCE`` (0 and the peak itself, say, and one
-    more either side), each spacing once.
+    shift 0, among them): each peak at least ``min_period`` from that fit whose distance has two
+    or more non-zero multiples (itself one) on peaks, within ``LATTICE_TOLERANCE``; each spacing
+    once, the mean of its members' distances over their multiples.
 
     Ribs and sleepers give two trains that interleave, so the gaps between the peaks are not
     even and :func:`_alias_period` sees no period. Held-out mixed 4602 (ribs 1.5 m, sleepers
