@@ -92,6 +92,7 @@ class PipelineOptions:
     pair_part_m: float = 25.0
     max_misalignment_m: float = 3.0
     max_widened_m: float = 6.0
+    other_pairs_below: float = 0.5
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
@@ -154,20 +155,10 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     t0 = time.perf_counter()
     # each worker process keeps its own tile cache: their budgets share the one given
     per_process = replace(options, tile_cache_gb=options.tile_cache_gb / max(1, int(getattr(stages.executor, "workers", 1))))
-    order = visit_order(pairs)
-    tiles = list(dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
-                                                          (pairs[k].run_b, pairs[k].tile_b.path))))
-    tile_keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
-    with blas_one_thread():  # (railtraj.matching.threads: faster here, same results)
-        detected, tiles_reused = cached_map(
-            stages.executor, detect_tile,
-            [(run, path, trajectories[run].span, stages, per_process.tile_cache_gb) for run, path in tiles],
-            tile_keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
-    keypoints = dict(zip(tiles, detected, strict=True))
+    keypoints, tile_key, tiles_reused = _detect(pairs, {}, {}, trajectories, stages, per_process, cache, progress)
     clock["detect"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    tile_key = dict(zip(tiles, tile_keys, strict=True))
     matched, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
     if cache:
         cache.prune()
@@ -193,6 +184,22 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             clock["widened"] = time.perf_counter() - t0
         coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                        options.alongtrack.resolved_sd)
+        unresolved = _reference_unresolved(coverage, before_chains, survey, options)
+        if unresolved:
+            t0 = time.perf_counter()
+            others = [p for p in select_pairs(survey, replace(options, pairs="all"))
+                      if _reference(survey, options) not in (p.run_a, p.run_b)]
+            keypoints, tile_key, more_tiles = _detect(others, keypoints, tile_key, trajectories, stages, per_process,
+                                                      cache, progress)
+            others_matched, more = _match(others, keypoints, tile_key, stages, per_process, cache, progress)
+            pairs, matched = pairs + others, matched + others_matched
+            results, before_chains, alongtrack = _along_track(matched, trajectories, options)
+            resolved = [r.offset for r in results]
+            coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
+                                                           options.alongtrack.resolved_sd)
+            tiles_reused, pairs_reused = tiles_reused + more_tiles, pairs_reused + more
+            along_notes.append(_other_pairs_note(unresolved, len(others), options))
+            clock["other_pairs"] = time.perf_counter() - t0
         along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach), coverage_note]
     ok = [o for o in resolved if o.ok]
 
@@ -217,6 +224,66 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})
+
+
+def _detect(pairs: list[TilePair], keypoints: dict, tile_key: dict, trajectories: dict[str, Trajectory],
+            stages: Stages, options: PipelineOptions, cache: Cache | None, progress) -> tuple[dict, dict, int]:
+    """``keypoints`` and ``tile_key`` (by (run, tile path)) with the tiles of ``pairs`` not yet
+    in them detected (finished ones from ``cache``), in :func:`visit_order`; and how many came
+    from the cache."""
+    order = visit_order(pairs)
+    tiles = [t for t in dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
+                                                                 (pairs[k].run_b, pairs[k].tile_b.path)))
+             if t not in keypoints]
+    keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
+    with blas_one_thread():  # (railtraj.matching.threads: faster here, same results)
+        detected, reused = cached_map(
+            stages.executor, detect_tile,
+            [(run, path, trajectories[run].span, stages, options.tile_cache_gb) for run, path in tiles],
+            keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
+    return ({**keypoints, **dict(zip(tiles, detected, strict=True))}, {**tile_key, **dict(zip(tiles, keys, strict=True))},
+            reused)
+
+
+def _reference(survey: Survey, options: PipelineOptions) -> str:
+    """The run every other run is matched to where ``pairs`` is ``reference``."""
+    return options.reference_run or sorted(survey.runs)[0]
+
+
+def _reference_unresolved(coverage: dict[str, dict] | None, checked: SdCheck | None, survey: Survey,
+                          options: PipelineOptions) -> dict:
+    """In a survey of three runs or more matched to a reference whose reported sd the check
+    before the chains widened (``checked``: GNSS biased), the reference's run pairs
+    (``"run_a~run_b"``: share) whose offset the chains resolved along less of the track than
+    ``pipeline.other_pairs_below``: there the other runs' tile pairs are matched too.
+
+    The chains are anchored where the runs report a small sd, at the portals. Where multipath
+    biases the reference run at its portals and the check widens its sd there, none of its
+    chains is anchored, though the other runs, good at theirs, are: a held-out portal survey
+    (sleepers 0.6 m, 1.3 times the speed, run a biased at both portals) resolved its run pairs
+    over 67 and 69 of 296 m and left the runs 0.31 / 0.52, 0.24 / 0.41 and 0.34 / 0.59 m apart;
+    with run b~c matched too, b~c resolved over 201 m, 0.017 / 0.050 m. Not where a featureless
+    lining leaves the chains unresolved (the reference's sd stands): on held-out feature_poor
+    1056 and 1057 the other pairs, unresolved too, moved run pairs by -2 to +4 cm RMS, as many
+    apart as together."""
+    if coverage is None or options.pairs != "reference" or len(survey.runs) < 3 or options.other_pairs_below <= 0:
+        return {}
+    ref = _reference(survey, options)
+    if checked is None or ref not in checked.widening:
+        return {}
+    return {key: c["share"] for key, c in coverage.items()
+            if ref in key.split("~") and c["share"] < options.other_pairs_below}
+
+
+def _other_pairs_note(unresolved: dict[str, float], n_pairs: int, options: PipelineOptions) -> str:
+    """The warning that the other runs' tile pairs were matched, and why."""
+    shares = ", ".join(f"{key} {share:.0%}" for key, share in sorted(unresolved.items()))
+    note = (f"along-track: the reference run's GNSS disagrees with the other runs' where it anchors the chains, "
+            f"which resolved {shares} of the track, less than {options.other_pairs_below:.0%} "
+            f"(pipeline.other_pairs_below); the {n_pairs} tile pairs between the other runs were matched too, "
+            "and every run pair resolved jointly (pipeline=multirun always does)")
+    log.warning(note)
+    return note
 
 
 def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, stages: Stages, options: PipelineOptions,
@@ -347,7 +414,7 @@ def select_pairs(survey: Survey, options: PipelineOptions) -> list[TilePair]:
     pairs = in_parts(require_overlaps(find_overlaps(survey, min_overlap_m=options.min_overlap_m), survey),
                      options.pair_part_m)
     if options.pairs == "reference":
-        ref = options.reference_run or sorted(survey.runs)[0]
+        ref = _reference(survey, options)
         if ref not in survey.runs:
             raise ConfigError(f"reference_run {ref!r} is not a run of the survey; runs: {', '.join(sorted(survey.runs))}")
         pairs = [p for p in pairs if ref in (p.run_a, p.run_b)]

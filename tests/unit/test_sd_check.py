@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -358,3 +360,25 @@ def _moved_across(o: TileOffset, metres: float) -> TileOffset:
     t = o.ties
     ties = Ties(t.run_a, t.run_b, t.time_a, t.time_b, t.xyz_a, t.xyz_b + [0.0, metres, 0.0], t.weight)
     return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, o.d - [0.0, metres, 0.0], o.cov, o.inliers, o.status, ties, o.info)
+
+
+@pytest.mark.parametrize(("biased_runs", "runs", "matched"), [
+    (("run_a",), ("run_a", "run_b", "run_c"), {"run_a~run_b": 0.2}),
+    (("run_b",), ("run_a", "run_b", "run_c"), {}),  # the reference's GNSS holds: a plain lining
+    (("run_a",), ("run_a", "run_b"), {}),  # no other run pair to match
+])
+def test_the_other_runs_pairs_are_matched_where_a_biased_reference_anchors_little(biased_runs, runs, matched):
+    """The global pipeline matches every run to the reference only, and the chains are anchored
+    where the runs report a small sd. Where the check finds the reference's GNSS biased (held-out
+    portal survey: run a at both portals) its chains resolve little, and the tile pairs between
+    the other runs are matched too; not where the reference holds and the chains resolve little
+    for want of features (that moved feature-poor surveys' run pairs as much apart as together)."""
+    from railtraj.pipeline import PipelineOptions, _reference_unresolved
+
+    trajs, offsets, _ = _survey(runs=runs, biased_runs=biased_runs)
+    checked = check_reported_sd(trajs, offsets)
+    assert set(biased_runs) <= set(checked.widening)  # (of two runs, either may be the biased one)
+    coverage = {f"run_a~{r}": {"share": share} for r, share in zip(runs[1:], (0.2, 0.9), strict=False)}
+    survey = SimpleNamespace(runs=dict.fromkeys(runs))
+    assert _reference_unresolved(coverage, checked, survey, PipelineOptions()) == matched
+    assert _reference_unresolved(coverage, checked, survey, PipelineOptions(other_pairs_below=0.0)) == {}
