@@ -160,8 +160,6 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     matched, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
-    if cache:
-        cache.prune()
     clock["match"] = time.perf_counter() - t0
     log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in matched), len(matched))
 
@@ -201,6 +199,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             along_notes.append(_other_pairs_note(unresolved, len(others), options))
             clock["other_pairs"] = time.perf_counter() - t0
         along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach), coverage_note]
+    if cache:  # (after every pass: a resumed run looks up the widened and the other pairs last)
+        cache.prune()
     ok = [o for o in resolved if o.ok]
 
     t0 = time.perf_counter()
