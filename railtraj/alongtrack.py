@@ -505,10 +505,15 @@ def _alias_period(shift: np.ndarray, min_period: float) -> float:
     return median if even else min_period
 
 
+def _with_fit(shift: np.ndarray, min_period: float) -> np.ndarray:
+    """A profile's peaks in order, the matcher's fit (shift 0) among them; a peak within a
+    quarter of ``min_period`` of that fit is that fit."""
+    return np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0))
+
+
 def _peak_gaps(shift: np.ndarray, min_period: float) -> np.ndarray:
-    """Gaps (m) between a profile's peaks in order, the matcher's fit (shift 0) among them; a
-    peak within a quarter of ``min_period`` of that fit is that fit."""
-    return np.diff(np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0)))
+    """Gaps (m) between a profile's peaks in order (:func:`_with_fit`)."""
+    return np.diff(_with_fit(shift, min_period))
 
 
 def _trains(shift: np.ndarray, min_period: float) -> tuple[float, ...]:
@@ -524,7 +529,7 @@ def _trains(shift: np.ndarray, min_period: float) -> tuple[float, ...]:
     neighbours showed only the sleepers' 0.65 m, so the move was taken for one off every period
     by 19 cm (:func:`_placement_variance`), its sd with it, and the runs stayed 9 cm apart along
     the track beside it."""
-    s = np.unique(np.append(np.where(np.abs(shift) < 0.25 * min_period, 0.0, shift), 0.0))
+    s = _with_fit(shift, min_period)
     found: list[float] = []
     for base in np.abs(s[np.abs(s) >= min_period]):  # a handful of peaks
         n = np.round(s / base)

@@ -25,6 +25,7 @@ import logging
 
 import numpy as np
 
+from railtraj.adjust.stiffness import stretches
 from railtraj.alongtrack import metres_travelled, used_along
 from railtraj.data import TileOffset, Trajectory
 
@@ -57,17 +58,17 @@ def along_track_coverage(offsets: list[TileOffset], report: list[dict], trajecto
         own = np.hypot(*(_reported_sd(trajectories.get(run), [offsets[k].info.get(f"time_{ab}", np.nan) for k in pairs])
                          for run, ab in ((run_a, "a"), (run_b, "b"))))
         resolved = np.array([used_along(offsets[k]) for k in pairs]) | (sd <= resolved_sd) | (own <= resolved_sd)
-        lo, hi = _stretches(s, resolved)
-        stretches = [_unresolved(traj, travelled, lo[a:b], hi[a:b], sd[a:b]) for a, b in _runs_of(~resolved)]
+        lo, hi = _owned(s, resolved)
+        gaps = [_unresolved(traj, travelled, lo[a:b + 1], hi[a:b + 1], sd[a:b + 1]) for a, b in stretches(~resolved)]
         length = float((hi - lo).sum())
         done = float((hi - lo)[resolved].sum())
         key = f"{run_a}~{run_b}"
         coverage[key] = {"length_m": round(length, 1), "resolved_m": round(done, 1),
-                         "share": round(done / length, 3) if length > 0 else 1.0, "unresolved": stretches}
-        if stretches:
-            longest = sorted(stretches, key=lambda r: -r["length_m"])[:NOTED_STRETCHES]
+                         "share": round(done / length, 3) if length > 0 else 1.0, "unresolved": gaps}
+        if gaps:
+            longest = sorted(gaps, key=lambda r: -r["length_m"])[:NOTED_STRETCHES]
             where = ", ".join(f"{r['time_b'][0]:.1f}-{r['time_b'][1]:.1f} s ({r['length_m']:.0f} m)" for r in longest)
-            more = f" and {len(stretches) - len(longest)} more" if len(stretches) > len(longest) else ""
+            more = f" and {len(gaps) - len(longest)} more" if len(gaps) > len(longest) else ""
             noted.append(f"{key} over {done:.0f} of {length:.0f} m; not at {run_b} {where}{more}")
     if not noted:
         return coverage, None
@@ -89,7 +90,7 @@ def _reported_sd(traj: Trajectory | None, times: list[float]) -> np.ndarray:
     return np.where(np.isfinite(t), sd[:, :2].max(axis=1), np.inf)
 
 
-def _stretches(s: np.ndarray, resolved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _owned(s: np.ndarray, resolved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The stretch of track each of the sorted positions ``s`` owns: half way to its neighbours,
     and at either end as far beyond as half the gap to its one neighbour (a lone pair: none);
     but between a resolved and an unresolved pair the unresolved one owns the whole gap. The
@@ -101,12 +102,6 @@ def _stretches(s: np.ndarray, resolved: np.ndarray) -> tuple[np.ndarray, np.ndar
         bounds[1:-1] = np.where(resolved[:-1] & ~resolved[1:], s[:-1], bounds[1:-1])
         bounds[1:-1] = np.where(~resolved[:-1] & resolved[1:], s[1:], bounds[1:-1])
     return bounds[:-1], bounds[1:]
-
-
-def _runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``(start, stop)`` of each run of consecutive True values in ``mask``."""
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
 
 
 def _unresolved(traj: Trajectory, travelled: np.ndarray, lo: np.ndarray, hi: np.ndarray, sd: np.ndarray) -> dict:

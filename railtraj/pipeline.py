@@ -185,8 +185,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
         unresolved = _reference_unresolved(coverage, before_chains, survey, options)
         if unresolved:
             t0 = time.perf_counter()
-            others = [p for p in select_pairs(survey, replace(options, pairs="all"))
-                      if _reference(survey, options) not in (p.run_a, p.run_b)]
+            ref = _reference(survey, options)
+            others = [p for p in select_pairs(survey, replace(options, pairs="all")) if ref not in (p.run_a, p.run_b)]
             keypoints, tile_key, more_tiles = _detect(others, keypoints, tile_key, trajectories, stages, per_process,
                                                       cache, progress)
             others_matched, more = _match(others, keypoints, tile_key, stages, per_process, cache, progress)
