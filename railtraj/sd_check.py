@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from railtraj.adjust.offsets import WEAK_STATUSES, offset_covariance, usable_offset
+from railtraj.adjust.offsets import WEAK_STATUSES, by_window, offset_covariance, usable_offset
 from railtraj.data import TileOffset, Trajectory
 
 log = logging.getLogger(__name__)
@@ -120,7 +120,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     if obs is None:
         return SdCheck(dict(trajectories), {}, summary)
     if not options.along:
-        obs = _across_and_up(obs, trajectories)
+        obs = _across_and_up(obs, trajectories, options.max_weak_sd_m)
     reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
                                                                             (obs.run_b, obs.time_b))]
     z, d, obs_sd = _z(obs, reported, options.max_weak_sd_m)
@@ -198,7 +198,7 @@ def _lone_across(obs: _Observations, trajectories: dict[str, Trajectory], report
     a lone pair has no sure pairs around it to say which run is at odds. On portal_trap 2 one
     `ok` pair, 20 m into the tunnel, blamed the biased run's partner (the biased run "agreed"
     with the third run 25 m further on, where both report 0.4 m): maximum 4.9 -> 6.9 cm."""
-    across = _across_and_up(obs, trajectories)
+    across = _across_and_up(obs, trajectories, options.max_weak_sd_m)
     return (_z(across, reported, options.max_weak_sd_m)[0] > options.lone_z * limit) & ~obs.weak
 
 
@@ -331,7 +331,9 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
     altogether, a run whose GNSS sat 0.39 m off near its entry portal was seen there by one
     coarse pair (7.7 sd) and three ambiguous ones (20-65 sd across), was not convicted, and the
     adjustment rejected those four and kept the run where its GNSS put it, claiming 1.3 cm (a
-    simulated survey drifted 2.5 m, matched within 4.5 m: 8 % of epochs beyond 3 sd)."""
+    simulated survey drifted 2.5 m, matched within 4.5 m: 8 % of epochs beyond 3 sd).
+    A weak pair counts window by window where the matcher gave its windows
+    (:func:`railtraj.adjust.offsets.by_window`): a bias ramping in within its tile shows there."""
     rows = []
     for k, o in enumerate(offsets):
         if o.run_a not in trajectories or o.run_b not in trajectories:
@@ -341,22 +343,33 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
             rows.append((np.full(len(t), o.run_a, object), np.full(len(t), o.run_b, object), t.time_a, t.time_b,
                          t.xyz_a[:, :2], t.xyz_a - t.xyz_b, np.broadcast_to(options.tie_sd_m**2 * np.eye(3), (len(t), 3, 3)),
                          np.full(len(t), k), np.zeros(len(t), bool)))
-        elif usable_offset(o, trajectories):
-            t_a = np.array([o.info["time_a"]])
-            # like a tie's xyz_a - xyz_b (the optimizer's c_b - c_a = d): error_a - error_b
-            rows.append((np.array([o.run_a], object), np.array([o.run_b], object), t_a, np.array([o.info["time_b"]]),
-                         trajectories[o.run_a].position_at(t_a)[:, :2], np.asarray(o.d, float)[None],
-                         offset_covariance(o)[None], np.array([k]), np.array([o.status in WEAK_STATUSES])))
+        else:
+            for w in by_window(o):  # a weak pair window by window, where it has them (across and up)
+                if not usable_offset(w, trajectories):
+                    continue
+                t_a = np.array([w.info["time_a"]])
+                # like a tie's xyz_a - xyz_b (the optimizer's c_b - c_a = d): error_a - error_b
+                rows.append((np.array([w.run_a], object), np.array([w.run_b], object), t_a,
+                             np.array([w.info["time_b"]]), trajectories[w.run_a].position_at(t_a)[:, :2],
+                             np.asarray(w.d, float)[None], offset_covariance(w)[None], np.array([k]),
+                             np.array([w.status in WEAK_STATUSES])))
     if not rows:
         return None
     return _Observations(*(np.concatenate(column) for column in zip(*rows, strict=True)))
 
 
-def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory]) -> _Observations:
-    """The observations with the along-track direction (run a's, where it was observed) left out."""
+def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory], max_weak_sd_m: float) -> _Observations:
+    """The observations with the along-track direction (run a's, where it was observed) left out.
+
+    One that leaves a direction out already (sd beyond ``max_weak_sd_m``: a weak pair, along its
+    own track axis, fitted on the clouds) is kept as it is: a bias ramping in tilts the biased
+    run's trajectory by its gradient (1.5 cm/m at a held-out portal), and a second unseen
+    direction that far from the first gave the plane between them an across sd of 0.6-1.3 m, so
+    the weak pairs there said nothing across the track either."""
     cov = obs.cov.copy()
+    unseen = np.linalg.eigvalsh(obs.cov)[:, -1] > max_weak_sd_m**2
     for run, traj in trajectories.items():
-        m = obs.run_a == run
+        m = (obs.run_a == run) & ~unseen
         if m.any():
             along = _track_frame(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
             cov[m] += UNSEEN_VAR * np.einsum("ni,nj->nij", along, along)

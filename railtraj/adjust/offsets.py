@@ -6,6 +6,8 @@ so that both read the same observations the same way.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from railtraj.alongtrack import COARSE
@@ -34,6 +36,22 @@ def _track_axis(o: TileOffset) -> np.ndarray:
     return np.linalg.eigh(o.cov)[1][:, -1]
 
 
+def by_window(o: TileOffset) -> list[TileOffset]:
+    """A weak pair as one offset per window of its curve (the matcher's ``weak_windows``: each
+    window's own offset, at the times the runs measured it), else the pair as it is.
+
+    A weak pair's one offset, at its reference point, hides an offset that changes within the
+    tile: a GNSS bias ramping in before a portal grew 30 cm across one held-out tile pair whose
+    reference point saw 4 cm of it. Its windows say, across the track and up, where the bias is.
+    The check of the runs' sd reads weak pairs so; the spline optimizer keeps one offset per
+    pair (by window, 15 of 25 held-out surveys lost 0.4-16 mm RMS: docs/method.md, "Session 48")."""
+    windows = o.info.get("weak_windows") if o.status in WEAK_STATUSES else None
+    if not windows or not len(windows["d"]):
+        return [o]
+    return [replace(o, d=np.asarray(d, float), info=dict(o.info, time_a=t_a, time_b=t_b))
+            for d, t_a, t_b in zip(windows["d"], windows["time_a"], windows["time_b"], strict=True)]
+
+
 def usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
     """A degenerate/ambiguous pair, or an ok pair without ties, with a finite offset, covariance
     and observation times."""
@@ -44,4 +62,4 @@ def usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
     return bool(np.isfinite(o.d).all() and np.isfinite(o.cov).all() and np.isfinite(times).all())
 
 
-__all__ = ["WEAK_ALONG_SD_M", "WEAK_STATUSES", "offset_covariance", "usable_offset"]
+__all__ = ["WEAK_ALONG_SD_M", "WEAK_STATUSES", "by_window", "offset_covariance", "usable_offset"]

@@ -598,6 +598,21 @@ def window_ties(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np
     return time_a[ok], time_b[ok], xyz_b[ok] + fit.at(xyz_b[ok]), xyz_b[ok]
 
 
+def windows_with_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray,
+                       b_time: np.ndarray, half: float = 0.5) -> dict[str, list]:
+    """Every window's own offset (``d``, used by the curve or not) and when each run measured it
+    (``time_a``, ``time_b``: median times within ``half`` metres along the track), for JSON.
+
+    What an ``ambiguous`` or ``degenerate`` pair still says across the track and up, window by
+    window: its one offset, at its reference point, hides an offset that changes within the
+    tile (a GNSS bias ramping in at a portal, :func:`railtraj.matching.resolve._ramped`)."""
+    s_w = fit.windows[:, 0]
+    time_a = _times_near(fit, a_xyz - fit.at(a_xyz), a_time, s_w, half)
+    time_b = _times_near(fit, b_xyz, b_time, s_w, half)
+    ok = np.isfinite(time_a) & np.isfinite(time_b)
+    return {"time_a": time_a[ok].tolist(), "time_b": time_b[ok].tolist(), "d": fit.windows[ok, 1:4].tolist()}
+
+
 def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np.ndarray,
                 half: float) -> np.ndarray:
     """Median time of the points within ``half`` metres along the track of each of ``s_values``.

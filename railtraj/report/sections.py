@@ -112,6 +112,9 @@ def pair_reason(offset, alongtrack: dict | None) -> str:
     parts = [REASONS.get(offset.status, offset.status)]
     if offset.status == "ambiguous" and info.get("rival_misfit_ratio") is not None:
         parts.append(f"rival misfit ratio {info['rival_misfit_ratio']:.2f}")
+    if info.get("rigid_overlap") is not None:  # (matching.resolve._ramped)
+        parts.append(f"no one offset fits the tile (overlap {float(info['rigid_overlap']):.2f}), its windows do: "
+                     f"the offset changes within it")
     if offset.status in ("no_overlap", "no_consensus") and info.get("fitness") is not None:
         parts.append(f"best fitness {float(info['fitness']):.2f}")
     if "keypoints_a" in info:

@@ -303,6 +303,33 @@ def test_weak_pairs_corroborate_a_disagreement_but_never_convict_alone():
     assert check_reported_sd(trajs, all_weak).summary["runs"] == {}
 
 
+def _weak_at_start(o: TileOffset, windows: bool) -> TileOffset:
+    """The pair as an ``ambiguous`` one observed at its first tie, and (``windows``) window by
+    window at its ties, as the matcher gives a weak pair (info ``weak_windows``)."""
+    t = o.ties
+    info = {"time_a": float(t.time_a[0]), "time_b": float(t.time_b[0]), "piecewise": {"axis": [1.0, 0.0, 0.0]}}
+    if windows:
+        info["weak_windows"] = {"time_a": t.time_a.tolist(), "time_b": t.time_b.tolist(),
+                                "d": (t.xyz_a - t.xyz_b).tolist()}
+    return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, t.xyz_a[0] - t.xyz_b[0], np.diag([3.0, 0.005, 0.005]) ** 2,
+                      o.inliers, "ambiguous", Ties.empty(o.run_a, o.run_b), info)
+
+
+def test_a_weak_pair_shows_window_by_window_a_bias_its_reference_point_hides():
+    """A bias ramping in across a tile (run a's from 0 to 0.28 m over tile 100): the weak pairs
+    of run a there are observed at their first window, where it has not begun. One sure pair
+    (run a~b, tile 125) shows it, and convicts nobody alone (checked across and up, as before the
+    chains); the weak pairs' windows corroborate it and say run a is at odds with both others."""
+    trajs, offsets, _ = _survey()
+    near = {"100", "125", "150"}
+    sure = [o for o in offsets if o.run_a != "run_a" or o.tile_a not in near or (o.run_b, o.tile_a) == ("run_b", "125")]
+    started = [o for o in offsets if o.run_a == "run_a" and o.tile_a == "100"]
+    before = SdCheckOptions(along=False)
+    assert check_reported_sd(trajs, sure + [_weak_at_start(o, False) for o in started], before).summary["runs"] == {}
+    summary = check_reported_sd(trajs, sure + [_weak_at_start(o, True) for o in started], before).summary
+    assert set(summary["runs"]) == {"run_a"} and summary["runs"]["run_a"]["against"] == ["run_b", "run_c"]
+
+
 def _moved_along(o: TileOffset, metres: float) -> TileOffset:
     """The pair on an along-track alias ``metres`` off (run b's ties and offset moved along x)."""
     t = o.ties

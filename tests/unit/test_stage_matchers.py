@@ -19,6 +19,7 @@ from railtraj.errors import ConfigError
 from railtraj.matching.resolve import MIN_KEYPOINT_TIES
 from railtraj.matching.synthetic import _box, placed, rotation_z, second_acquisition, tunnel_tile
 from railtraj.plugins import registry
+from railtraj.report.sections import pair_reason
 
 THESIS_SHIFT = np.array([0.5, 1.5, 0.10])
 AXIS = rotation_z(30) @ [1.0, 0.0, 0.0]
@@ -257,6 +258,29 @@ def test_a_pair_no_window_of_which_could_be_fitted_is_degenerate_and_unused(repl
     off = registry().create("matcher", "pair_voting", {}).match(a, ka, sparse, kb)
     assert off.status == "degenerate" and "piecewise" not in off.info, off.status
     assert not np.isfinite(off.cov).any() and off.info["unusable"]
+
+
+def test_a_pair_whose_offset_ramps_within_the_tile_is_fitted_window_by_window():
+    """Run b's offset grows by 0.6 m across and 0.24 m along the track over the 20 m tile, as a
+    GNSS bias ramping in before a portal: no one translation fits the tile (``no_overlap``
+    before), but each 5 m window does. The pair is at best ``ambiguous`` (the candidate's alias
+    is the chain's to check) and gives, window by window, across and up within 1 cm."""
+    length, amp = 20.0, 0.6
+    a = tunnel_tile(0, length, density=300, seed=0)
+    ramp = lambda x: np.c_[0.4 * amp * x / length, amp * x / length, np.zeros_like(x)]  # noqa: E731
+    noise = np.random.default_rng(1).normal(0, 0.02, a.xyz.shape)
+    b = PointTile(a.xyz + ramp(a.xyz[:, 0]) + noise, a.gps_time.copy(), run_id="B", name="B_ramp")
+    a, b = placed(a), placed(b)
+    ka, kb = _detect("iss", PRESETS["tunnel"], a, b)
+    off = registry().create("matcher", "pair_voting", {}).match(a, ka, b, kb)
+    assert off.status == "ambiguous" and len(off.ties) == 0, off.status
+    assert off.info["rigid_overlap"] < 0.5
+    windows = off.info["weak_windows"]
+    assert len(windows["d"]) >= 4
+    x = (np.array(windows["time_b"]) - 1000.0) * 5.0  # the synthetic run's 5 m/s from its x = 0
+    error = (np.array(windows["d"]) + ramp(x) @ rotation_z(30).T) @ rotation_z(30)  # along, across, up
+    assert np.abs(error[:, 1:]).max() < 0.01, error
+    assert "the offset changes within it" in pair_reason(off, None)
 
 
 def test_a_widened_matcher_finds_an_offset_beyond_the_window_it_was_built_with(replica):
