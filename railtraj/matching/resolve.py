@@ -34,6 +34,7 @@ from railtraj.matching.piecewise import (
     piecewise_fit,
     reference_times,
     reference_tree,
+    track_axis,
     track_frame,
     window_ties,
     windows_with_times,
@@ -160,7 +161,15 @@ def _ramped(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen: Checked, s: VoteSe
     survey whose cuttings were 30 m, run a's error grew from 1 to 31 cm across one 25 m tile,
     which fitted run b's by 0.39 at best (0.5 needed) though each 5 m of it fitted by 0.75-0.92.
     That pair, and the same one against run c, were ``no_overlap``; no pair saw the bias, and
-    run a kept it claiming 1.3 cm (4 % of its epochs beyond 3 sd, worst 26 sd)."""
+    run a kept it claiming 1.3 cm (4 % of its epochs beyond 3 sd, worst 26 sd).
+
+    Windows that fit make the candidate nearest one of them fit at least that window's share of
+    the tile: below it the clouds do not overlap, and fitting windows is not tried (a
+    twin-track pair of the control survey fitted by 0.07: 8 s of windows that did not fit)."""
+    s_b = tile_b.xyz @ track_axis(chosen.fit.information) if np.isfinite(chosen.fit.information).all() else np.zeros(1)
+    extent = float(np.subtract(*np.quantile(s_b, [0.995, 0.005])))
+    if not chosen.fit.overlap >= s.min_fitness * min(1.0, s.window_length / max(extent, 1e-9)):
+        return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
     trial = dict(info, rigid_overlap=chosen.fit.overlap)
     out = _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, trial, tree, few_votes=True)
     if len(out.info.get("piecewise", {}).get("windows", [])) < s.min_windows:
