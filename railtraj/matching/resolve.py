@@ -166,15 +166,23 @@ def _ramped(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen: Checked, s: VoteSe
     Windows that fit make the candidate nearest one of them fit at least that window's share of
     the tile: below it the clouds do not overlap, and fitting windows is not tried (a
     twin-track pair of the control survey fitted by 0.07: 8 s of windows that did not fit)."""
-    s_b = tile_b.xyz @ track_axis(chosen.fit.information) if np.isfinite(chosen.fit.information).all() else np.zeros(1)
-    extent = float(np.subtract(*np.quantile(s_b, [0.995, 0.005])))
-    if not chosen.fit.overlap >= s.min_fitness * min(1.0, s.window_length / max(extent, 1e-9)):
+    if chosen.fit.overlap < s.min_fitness * _window_share(tile_b, chosen.fit.information, s.window_length):
         return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
     trial = dict(info, rigid_overlap=chosen.fit.overlap)
     out = _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, trial, tree, few_votes=True)
     if len(out.info.get("piecewise", {}).get("windows", [])) < s.min_windows:
         return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
     return out
+
+
+def _window_share(tile: PointTile, information: np.ndarray, window_length: float) -> float:
+    """The share of ``tile`` along the track (its central 99 %) one window of ``window_length``
+    covers; 1 where the track direction is unknown (``information`` not finite)."""
+    if not np.isfinite(information).all():
+        return 1.0
+    s = tile.xyz @ track_axis(information)
+    extent = float(np.subtract(*np.quantile(s, [0.995, 0.005])))
+    return min(1.0, window_length / extent) if extent > 0 else 1.0
 
 
 def _unchecked(tile_a: PointTile, tile_b: PointTile, peaks: list, info: dict) -> TileOffset:
