@@ -592,9 +592,7 @@ def window_ties(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np
     s_w = fit.windows[fit.windows[:, 4] > 0, 0]
     s_b = (b_xyz - fit.origin) @ fit.axis
     xyz_b = np.array([b_xyz[int(np.argmin(np.abs(s_b - s)))] for s in s_w]).reshape(-1, 3)  # a few windows
-    time_a = _times_near(fit, a_xyz - fit.at(a_xyz), a_time, s_w, half)
-    time_b = _times_near(fit, b_xyz, b_time, s_w, half)
-    ok = np.isfinite(time_a) & np.isfinite(time_b)
+    time_a, time_b, ok = _window_times(fit, a_xyz, a_time, b_xyz, b_time, s_w, half)
     return time_a[ok], time_b[ok], xyz_b[ok] + fit.at(xyz_b[ok]), xyz_b[ok]
 
 
@@ -606,11 +604,17 @@ def windows_with_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_
     What an ``ambiguous`` or ``degenerate`` pair still says across the track and up, window by
     window: its one offset, at its reference point, hides an offset that changes within the
     tile (a GNSS bias ramping in at a portal, :func:`railtraj.matching.resolve._ramped`)."""
-    s_w = fit.windows[:, 0]
+    time_a, time_b, ok = _window_times(fit, a_xyz, a_time, b_xyz, b_time, fit.windows[:, 0], half)
+    return {"time_a": time_a[ok].tolist(), "time_b": time_b[ok].tolist(), "d": fit.windows[ok, 1:4].tolist()}
+
+
+def _window_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray, b_time: np.ndarray,
+                  s_w: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """When each run measured the along-track positions ``s_w`` (run a's points taken back by
+    the curve), and where both times are known."""
     time_a = _times_near(fit, a_xyz - fit.at(a_xyz), a_time, s_w, half)
     time_b = _times_near(fit, b_xyz, b_time, s_w, half)
-    ok = np.isfinite(time_a) & np.isfinite(time_b)
-    return {"time_a": time_a[ok].tolist(), "time_b": time_b[ok].tolist(), "d": fit.windows[ok, 1:4].tolist()}
+    return time_a, time_b, np.isfinite(time_a) & np.isfinite(time_b)
 
 
 def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np.ndarray,

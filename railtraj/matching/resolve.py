@@ -131,10 +131,10 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     info["timings"]["dense_check"] = time.perf_counter() - t1
     if chosen is None:  # no peak with votes enough, and the search found nothing that fits
         return _unchecked(tile_a, tile_b, peaks, info)
-    if chosen.fit.overlap < s.min_fitness and piecewise:  # no translation fits: perhaps no one does
-        return _ramped(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, tree(), refusal)
     if chosen.fit.overlap < s.min_fitness:  # (a handful of votes fitting nowhere is no consensus)
-        return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
+        ramped = _ramped(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, tree()) if piecewise else None
+        return ramped if ramped is not None else failed(tile_a, tile_b, refusal, info, chosen.fit.d,
+                                                        inliers=chosen.peak.count)
     if piecewise:
         return _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info, tree(), few_votes)
     if info["rival_misfit_ratio"] >= s.ambiguity_ratio:
@@ -150,12 +150,12 @@ def resolve(tile_a: PointTile, kp_a: Keypoints, tile_b: PointTile, kp_b: Keypoin
     return _vote_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, info)
 
 
-def _ramped(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen: Checked, s: VoteSettings, info: dict, tree: cKDTree,
-            refusal: str) -> TileOffset:
+def _ramped(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen: Checked, s: VoteSettings, info: dict,
+            tree: cKDTree) -> TileOffset | None:
     """The windows of a pair no one translation fits, fitted from the best candidate: where its
     offset changes within the tile, they fit where the tile as a whole cannot. At best
-    ``ambiguous`` (the candidate's alias is the chain's to check), and ``refusal`` unless
-    ``min_windows`` windows fit.
+    ``ambiguous`` (the candidate's alias is the chain's to check); None (the pair is refused)
+    unless ``min_windows`` windows fit.
 
     A GNSS multipath bias ramps in over the last tens of metres before a portal: on a held-out
     survey whose cuttings were 30 m, run a's error grew from 1 to 31 cm across one 25 m tile,
@@ -167,12 +167,10 @@ def _ramped(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen: Checked, s: VoteSe
     the tile: below it the clouds do not overlap, and fitting windows is not tried (a
     twin-track pair of the control survey fitted by 0.07: 8 s of windows that did not fit)."""
     if chosen.fit.overlap < s.min_fitness * _window_share(tile_b, chosen.fit.information, s.window_length):
-        return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
+        return None
     trial = dict(info, rigid_overlap=chosen.fit.overlap)
     out = _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes, chosen, s, trial, tree, few_votes=True)
-    if len(out.info.get("piecewise", {}).get("windows", [])) < s.min_windows:
-        return failed(tile_a, tile_b, refusal, info, chosen.fit.d, inliers=chosen.peak.count)
-    return out
+    return out if len(out.info.get("piecewise", {}).get("windows", [])) >= s.min_windows else None
 
 
 def _window_share(tile: PointTile, information: np.ndarray, window_length: float) -> float:
