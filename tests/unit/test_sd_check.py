@@ -303,6 +303,32 @@ def test_weak_pairs_corroborate_a_disagreement_but_never_convict_alone():
     assert check_reported_sd(trajs, all_weak).summary["runs"] == {}
 
 
+def test_a_disagreement_only_weak_pairs_show_stays_in_both_runs_corrected_sd():
+    """Two runs, run a's GNSS 0.3 m off across at a portal while it claims 2 cm, and the only tile
+    pairs there ambiguous: they convict nobody, so the correction keeps run a's bias. Both runs'
+    corrected sd there covers the disagreement (held-out commensurate 4902: 28 sd -> 1.5 sd); the
+    correction is untouched and far from it the sd is the posterior's."""
+    from railtraj.sd_check import with_fading_margin
+
+    trajs, offsets, _ = _survey(("run_a", "run_b"))
+    trap = [_weak(o) if o.tile_a in ("100", "125") else o for o in offsets]
+    checked = check_reported_sd(trajs, trap)
+    assert checked.summary["runs"] == {}
+    kept = [o.ties for o in trap if o.ok]
+    corrected = SplineOptimizer().optimize(trajs, kept, [], widening=checked.widening)
+    out = with_fading_margin(corrected, checked)
+    options = SdCheckOptions()
+    for r in trajs:
+        s = _chainage(trajs[r])
+        error = np.abs(out[r].xyz[:, 1] - 180000.0)
+        np.testing.assert_array_equal(out[r].xyz, corrected[r].xyz)
+        assert np.all(error <= 3 * out[r].sd[:, 1]), r
+        far = (s < TRAP[0] - options.reach_m - options.fade_m - 5) | (s > TRAP[1] + options.reach_m + options.fade_m + 5)
+        np.testing.assert_array_equal(out[r].sd[far], corrected[r].sd[far])
+    assert np.abs(out["run_a"].xyz[:, 1] - 180000.0).max() > 0.8 * BIAS  # kept: nothing says which run is off
+    assert checked.summary["unsettled"]["runs"] == ["run_a", "run_b"]
+
+
 def _weak_at_start(o: TileOffset, windows: bool) -> TileOffset:
     """The pair as an ``ambiguous`` one observed at its first tie, and (``windows``) window by
     window at its ties, as the matcher gives a weak pair (info ``weak_windows``)."""
