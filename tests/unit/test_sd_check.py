@@ -307,7 +307,8 @@ def test_a_disagreement_only_weak_pairs_show_stays_in_both_runs_corrected_sd():
     """Two runs, run a's GNSS 0.3 m off across at a portal while it claims 2 cm, and the only tile
     pairs there ambiguous: they convict nobody, so the correction keeps run a's bias. Both runs'
     corrected sd there covers the disagreement (held-out commensurate 4902: 28 sd -> 1.5 sd); the
-    correction is untouched and far from it the sd is the posterior's."""
+    correction is untouched and far from it the sd is the posterior's. With a third run that
+    agrees with run b (sure pairs), run a alone keeps it."""
     from railtraj.sd_check import with_fading_margin
 
     trajs, offsets, _ = _survey(("run_a", "run_b"))
@@ -326,7 +327,18 @@ def test_a_disagreement_only_weak_pairs_show_stays_in_both_runs_corrected_sd():
         far = (s < TRAP[0] - options.reach_m - options.fade_m - 5) | (s > TRAP[1] + options.reach_m + options.fade_m + 5)
         np.testing.assert_array_equal(out[r].sd[far], corrected[r].sd[far])
     assert np.abs(out["run_a"].xyz[:, 1] - 180000.0).max() > 0.8 * BIAS  # kept: nothing says which run is off
-    assert checked.summary["unsettled"]["runs"] == ["run_a", "run_b"]
+    assert checked.summary["unsettled"]["runs"] == ["run_a", "run_b"]  # two runs: either may be off
+    # a third run agreeing with run b where both meet run a: run a alone keeps the disagreement
+    trajs, offsets, _ = _survey()
+    trap = [_weak(o) if o.tile_a in ("100", "125") and o.run_a == "run_a" else o for o in offsets]
+    checked = check_reported_sd(trajs, trap)
+    assert checked.summary["runs"] == {} and checked.summary["unsettled"]["runs"] == ["run_a"]
+    corrected = SplineOptimizer().optimize(trajs, [o.ties for o in trap if o.ok], [], widening=checked.widening)
+    out = with_fading_margin(corrected, checked)
+    error = np.abs(out["run_a"].xyz[:, 1] - 180000.0)
+    assert np.all(error <= 3 * out["run_a"].sd[:, 1]) and error.max() > 0.8 * BIAS
+    for r in ("run_b", "run_c"):
+        np.testing.assert_array_equal(out[r].sd, corrected[r].sd)
 
 
 def _weak_at_start(o: TileOffset, windows: bool) -> TileOffset:
