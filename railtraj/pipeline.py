@@ -215,7 +215,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     control_at = control.xyz[:, :2] if len(control) and _takes(stages.optimizer, "control") else None
     checked = check_reported_sd(trajectories, offsets, options.sd_check, earlier=before_chains, control_at=control_at)
     notes += checked.summary["notes"]
-    corrected, adjustment = optimize(stages.optimizer, trajectories, ties, offsets, control, notes, checked)
+    adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs]
+    corrected, adjustment = optimize(stages.optimizer, trajectories, ties, adjusted, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     if coverage is not None:

@@ -100,6 +100,10 @@ class SdCheck:
     #: per run, the covariance (n_epochs, 3, 3) to add to its *corrected* sd where a vote of runs
     #: settled a disagreement (see :func:`_vote_margin`)
     vote_margin: dict[str, np.ndarray] = field(default_factory=dict)
+    #: indices (in the offsets checked) of the weak tile pairs whose disagreement is unsettled
+    #: (:func:`_unsettled_margin`): left out of the adjustment, which keeps both runs where their
+    #: GNSS puts them
+    unsettled_pairs: frozenset[int] = frozenset()
 
 
 def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
@@ -192,10 +196,10 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         blamed = {run: unsettled & _blamed(run, runs, obs, odds) for run in runs}
         for run, extra in _unsettled_margin(trajectories, obs, d, blamed, options).items():
             vote_margin[run] = vote_margin.get(run, 0.0) + extra
-        summary["unsettled"] = _unsettled_summary(blamed, d)
+        summary["unsettled"] = _unsettled_summary(blamed, d, obs.pair)
         log.warning(summary["unsettled"]["note"])
         summary["notes"].append(summary["unsettled"]["note"])
-    return SdCheck(out, widening, summary, margin, vote_margin)
+    return SdCheck(out, widening, summary, margin, vote_margin, frozenset(obs.pair[unsettled].tolist()))
 
 
 def _lone_across(obs: _Observations, trajectories: dict[str, Trajectory], reported: list[np.ndarray],
@@ -289,16 +293,18 @@ def _unsettled_margin(trajectories: dict[str, Trajectory], obs: _Observations, d
     return out
 
 
-def _unsettled_summary(blamed: dict[str, np.ndarray], d: np.ndarray) -> dict:
+def _unsettled_summary(blamed: dict[str, np.ndarray], d: np.ndarray, pair: np.ndarray) -> dict:
     """The runs weak pairs alone show at odds far beyond their reported sd, and a note."""
     runs = sorted(run for run, mine in blamed.items() if mine.any())
     seen = np.any(list(blamed.values()), axis=0)
+    pairs = sorted(set(pair[seen].tolist()))
     worst = float(np.linalg.norm(d[seen], axis=1).max())
     note = (f"run(s) {', '.join(runs)} disagree with the others by up to {worst:.2f} m where they report "
-            f"centimetres, seen only by tile pairs whose along-track offset is unresolved, so nobody's GNSS was "
-            f"widened and the correction keeps them where they are; their corrected sd there covers the "
-            f"disagreement. Control there would settle it")
-    return {"observations": int(seen.sum()), "runs": runs, "worst_disagreement_m": worst, "note": note}
+            f"centimetres, seen only by tile pairs whose along-track offset is unresolved ({len(pairs)}), so nobody's "
+            f"GNSS was widened and those pairs were left out of the adjustment, which keeps the runs where their GNSS "
+            f"puts them; the corrected sd there covers the disagreement. Control there would settle it")
+    return {"observations": int(seen.sum()), "runs": runs, "worst_disagreement_m": worst, "pairs_left_out": len(pairs),
+            "note": note}
 
 
 def _vote_summary(obs: _Observations, vote: np.ndarray, d: np.ndarray, outvoted: list[str],
@@ -364,7 +370,7 @@ def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
             notes += [earlier.summary[k]["note"] for k in ("vote", "unsettled")
                       if k in earlier.summary and earlier.summary[k]["note"] not in notes]
     summary = dict(check.summary, earlier=earlier.summary, notes=notes)
-    return SdCheck(out, widening, summary, margin, vote_margin)
+    return SdCheck(out, widening, summary, margin, vote_margin, check.unsettled_pairs)
 
 
 def _largest_sd(covariances: dict[str, np.ndarray]) -> dict[str, float]:
