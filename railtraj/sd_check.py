@@ -17,6 +17,11 @@ in the track frame (along, across, up), over ``reach_m`` metres around it, so th
 follows the runs that agree and the corrected run's posterior sd says how little its own GNSS
 was worth there.
 
+A disagreement far beyond both runs' reported sd that only weak pairs show convicts nobody (a
+wrong weak pair in an open cutting would free a good run to follow it): the adjustment leaves
+those pairs out and keeps the runs where their GNSS puts them, and the corrected sd of the run at
+odds with the others there (with two runs, of both) covers the disagreement.
+
 A vote of runs is no proof: runs through one portal minutes apart may share a multipath bias,
 and then the run the others outvote is the right one. Nothing relative can tell, so where a vote
 settled a disagreement every run's corrected sd keeps a share of it (``vote_share``), unless
@@ -299,7 +304,7 @@ def _unsettled_summary(blamed: dict[str, np.ndarray], d: np.ndarray, pair: np.nd
     seen = np.any(list(blamed.values()), axis=0)
     pairs = sorted(set(pair[seen].tolist()))
     worst = float(np.linalg.norm(d[seen], axis=1).max())
-    note = (f"run(s) {', '.join(runs)} disagree with the others by up to {worst:.2f} m where they report "
+    note = (f"run(s) {', '.join(runs)} at odds with the runs they meet by up to {worst:.2f} m where they report "
             f"centimetres, seen only by tile pairs whose along-track offset is unresolved ({len(pairs)}), so nobody's "
             f"GNSS was widened and those pairs were left out of the adjustment, which keeps the runs where their GNSS "
             f"puts them; the corrected sd there covers the disagreement. Control there would settle it")
@@ -367,8 +372,8 @@ def _where_silent(check: SdCheck, earlier: SdCheck) -> SdCheck:
         keep = _stretches_apart(extra, vote_margin.get(run, np.zeros_like(extra)))
         if keep.any():
             vote_margin[run] = vote_margin.get(run, 0.0) + np.where(keep[:, None, None], extra, 0.0)
-            notes += [earlier.summary[k]["note"] for k in ("vote", "unsettled")
-                      if k in earlier.summary and earlier.summary[k]["note"] not in notes]
+            if earlier.summary["vote"]["note"] not in notes:
+                notes.append(earlier.summary["vote"]["note"])
     summary = dict(check.summary, earlier=earlier.summary, notes=notes)
     return SdCheck(out, widening, summary, margin, vote_margin, check.unsettled_pairs)
 
