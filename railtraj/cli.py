@@ -76,6 +76,7 @@ def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> No
     from railtraj.io.atomic import atomic_write
     from railtraj.memory import MemoryMonitor
     from railtraj.pipeline import PipelineOptions, run_pipeline
+    from railtraj.same_track import SameTrackOptions
     from railtraj.sd_check import SdCheckOptions
 
     anchors = anchors_mode(cfg.anchors)  # a bad value fails here, before any heavy work
@@ -106,7 +107,8 @@ def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> No
                               crs=cfg.crs, grid_dir=grid_dir,
                               sbet_crs=sbet_crs,
                               alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)),
-                              sd_check=SdCheckOptions(**OmegaConf.to_container(pipe.sd_check)))
+                              sd_check=SdCheckOptions(**OmegaConf.to_container(pipe.sd_check)),
+                              same_track=SameTrackOptions(**OmegaConf.to_container(pipe.same_track)))
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         frame_transformer(cfg.crs, sbet_crs, grid_dir)

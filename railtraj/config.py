@@ -18,6 +18,7 @@ from omegaconf import MISSING
 from railtraj.alongtrack import AlongTrackOptions
 from railtraj.errors import ConfigError
 from railtraj.plugins import registry
+from railtraj.same_track import SameTrackOptions
 from railtraj.sd_check import SdCheckOptions
 
 
@@ -47,6 +48,7 @@ class PipelineConfig:
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement
+    same_track: SameTrackOptions = field(default_factory=SameTrackOptions)  # runs on one track compared where GNSS is good
 
 
 LOCAL = PipelineConfig(name="local", pairs="all", alongtrack=AlongTrackOptions(enabled=False))

@@ -59,6 +59,8 @@ from railtraj.matching.spacing import median_point_spacing, sparse_profiles_note
 from railtraj.matching.threads import blas_one_thread
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
+from railtraj.same_track import SameTrackOptions, same_track_offsets
+from railtraj.same_track import summary as same_track_summary
 from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd, with_fading_margin
 from railtraj.track_direction import fitted_direction_note
 
@@ -99,6 +101,7 @@ class PipelineOptions:
     tile_cache_gb: float = DEFAULT_BUDGET_GB  # whole tiles kept between detect and match, shared by the workers
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)
+    same_track: SameTrackOptions = field(default_factory=SameTrackOptions)
 
 
 @dataclass
@@ -213,15 +216,21 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     offsets = [r.offset for r in results]
     # the optimizer weighs the runs by their sd: widen it first where the runs show it lies
     control_at = control.xyz[:, :2] if len(control) and _takes(stages.optimizer, "control") else None
-    checked = check_reported_sd(trajectories, offsets, options.sd_check, earlier=before_chains, control_at=control_at)
+    # runs on the same track compared where both report GNSS: the check sees a portal's bias
+    # there, the adjustment holds the runs together where neither's GNSS is found biased
+    same_track = same_track_offsets(trajectories, options.same_track)
+    checked = check_reported_sd(trajectories, offsets + same_track, options.sd_check, earlier=before_chains,
+                                control_at=control_at)
     notes += checked.summary["notes"]
-    adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs]
+    same_track = same_track_offsets(trajectories, options.same_track, trusted=checked.trajectories)
+    adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs] + same_track
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, adjusted, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     if coverage is not None:
         adjustment["alongtrack_coverage"] = coverage
     adjustment["sd_check"] = checked.summary
+    adjustment["same_track"] = same_track_summary(same_track)
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})

@@ -44,6 +44,7 @@ import numpy as np
 
 from railtraj.adjust.offsets import WEAK_STATUSES, by_window, offset_covariance, usable_offset
 from railtraj.data import TileOffset, Trajectory
+from railtraj.same_track import track_frame
 
 log = logging.getLogger(__name__)
 
@@ -409,11 +410,16 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
     adjustment rejected those four and kept the run where its GNSS put it, claiming 1.3 cm (a
     simulated survey drifted 2.5 m, matched within 4.5 m: 8 % of epochs beyond 3 sd).
     A weak pair counts window by window where the matcher gave its windows
-    (:func:`railtraj.adjust.offsets.by_window`): a bias ramping in within its tile shows there."""
-    rows = []
+    (:func:`railtraj.adjust.offsets.by_window`): a bias ramping in within its tile shows there.
+    Same-track observations (:mod:`railtraj.same_track`) are sure, across and up; each segment
+    of them counts as one tile pair."""
+    rows, segments = [], {}
     for k, o in enumerate(offsets):
         if o.run_a not in trajectories or o.run_b not in trajectories:
             continue
+        same_track = bool(o.info.get("same_track"))
+        if same_track:  # (one tile pair per segment: one place alone convicts nobody)
+            k = segments.setdefault((o.run_a, o.run_b, o.tile_a), len(offsets) + len(segments))
         t = o.ties
         if o.ok and t is not None and len(t):
             rows.append((np.full(len(t), o.run_a, object), np.full(len(t), o.run_b, object), t.time_a, t.time_b,
@@ -428,7 +434,7 @@ def _pool(trajectories: dict[str, Trajectory], offsets: Sequence[TileOffset],
                 rows.append((np.array([w.run_a], object), np.array([w.run_b], object), t_a,
                              np.array([w.info["time_b"]]), trajectories[w.run_a].position_at(t_a)[:, :2],
                              np.asarray(w.d, float)[None], offset_covariance(w)[None], np.array([k]),
-                             np.array([w.status in WEAK_STATUSES])))
+                             np.array([w.status in WEAK_STATUSES and not same_track])))
     if not rows:
         return None
     return _Observations(*(np.concatenate(column) for column in zip(*rows, strict=True)))
@@ -447,7 +453,7 @@ def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory], max_
     for run, traj in trajectories.items():
         m = (obs.run_a == run) & ~unseen
         if m.any():
-            along = _track_frame(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
+            along = track_frame(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
             cov[m] += UNSEEN_VAR * np.einsum("ni,nj->nij", along, along)
     return replace(obs, cov=cov)
 
@@ -571,7 +577,7 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     widening fades out linearly over the next ``fade_m`` metres (:func:`with_fading_margin`)."""
     from scipy.ndimage import maximum_filter1d
 
-    frame = _track_frame(traj.xyz)
+    frame = track_frame(traj.xyz)
     bins = np.floor(traj.travelled()).astype(np.int64)
     at = np.clip(np.searchsorted(traj.time, times), 0, len(traj.time) - 1)
     size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
@@ -617,18 +623,6 @@ def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> di
         margin = checked.margin.get(run, 0.0) + checked.vote_margin.get(run, 0.0)
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, covariance_at(traj.time, checked_time, margin)))
     return out
-
-
-def _track_frame(xyz: np.ndarray) -> np.ndarray:
-    """(n, 3, 3): rows along the track (horizontal), across it (left) and up, at each epoch."""
-    tangent = np.gradient(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
-    norm = np.linalg.norm(tangent, axis=1)
-    tangent = np.where(norm[:, None] > 0, tangent / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-    frame = np.zeros((len(xyz), 3, 3))
-    frame[:, 0, :2] = tangent
-    frame[:, 1, :2] = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    frame[:, 2, 2] = 1.0
-    return frame
 
 
 def _spans(time: np.ndarray, flag: np.ndarray) -> list[list[float]]:
