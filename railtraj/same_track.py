@@ -34,7 +34,11 @@ PREFIX = "same track"
 @dataclass
 class SameTrackOptions:
     sd_m: float = 0.02          # sd of one comparison across and up (0: no comparison)
-    max_apart_m: float = 0.5    # runs whose paths lie further apart across (median) are on other tracks
+    # runs whose paths lie further apart across (median) are on other tracks; a place further
+    # from that median, or where the runs' headings differ by more than max_turn_deg, is on
+    # another track (a turnout) and is not compared
+    max_apart_m: float = 0.5
+    max_turn_deg: float = 2.0
     gnss_sd_m: float = 0.10     # both runs report at most this horizontal sd where they are compared
     spacing_m: float = 5.0      # one comparison every so many metres of run a
     segment_m: float = 25.0     # comparisons within so many metres of run a count as one tile pair
@@ -47,7 +51,9 @@ def same_track_offsets(trajectories: dict[str, Trajectory], options: SameTrackOp
     pair's median there. ``trusted``: the runs with their sd widened where their GNSS was found
     biased (:mod:`railtraj.sd_check`): the median is taken where neither run's is, and a pair
     with fewer than three such places is not compared (a run biased at both short portals
-    shifted the median, and the adjustment held the others to its bias)."""
+    shifted the median, and the adjustment held the others to its bias). Places where one run
+    turns off the other's track (a turnout: more than ``max_apart_m`` across from the median, or
+    headings more than ``max_turn_deg`` apart) are not compared."""
     if not options.sd_m > 0:
         return []
     out = []
@@ -83,6 +89,10 @@ def _compared(run_a: Trajectory, run_b: Trajectory, options: SameTrackOptions,
         return []
     local[:, 1:] -= np.median(local[sure, 1:], axis=0)
     local[:, 0] = 0.0
+    turn = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", frame[:, 0], track_frame(run_b.xyz)[near, 0])),
+                                        0.0, 1.0)))
+    keep = (np.abs(local[:, 1]) <= options.max_apart_m) & (turn <= options.max_turn_deg)
+    at, near, frame, local = at[keep], near[keep], frame[keep], local[keep]
     d = np.einsum("nji,nj->ni", frame, local)
     segment = np.floor(travelled[at] / options.segment_m).astype(np.int64)
     cov = options.sd_m**2 * np.eye(3)

@@ -52,8 +52,17 @@ def test_runs_on_one_track_show_a_bias_across_where_both_report_gnss():
 
 
 def test_runs_on_other_tracks_are_not_compared():
+    """Twin tracks 4 m apart; and a run turning off onto the next track (a 1:9 turnout) after
+    200 m: compared only before it turns."""
     runs = {"run_a": _run("run_a", 1000.0), "run_b": _run("run_b", 2000.0, across=4.0)}
     assert same_track_offsets(runs, SameTrackOptions()) == []
+    turning = _run("run_b", 2000.0)
+    s = turning.xyz[:, 0] - 530000
+    turning.xyz[:, 1] += np.clip((s - 200.0) / 9.0, 0.0, 4.0)
+    out = same_track_offsets({"run_a": _run("run_a", 1000.0), "run_b": turning}, SameTrackOptions())
+    where = np.array([_chainage(turning, o.info["time_b"]) for o in out])
+    assert len(out) > 30 and where.max() < 202.0
+    np.testing.assert_allclose([o.d for o in out], 0.0, atol=0.003)
     assert same_track_offsets({"run_a": _run("run_a", 1000.0), "run_b": _run("run_b", 2000.0)},
                               SameTrackOptions(sd_m=0.0)) == []
 
