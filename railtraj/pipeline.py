@@ -223,6 +223,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
                                 control_at=control_at)
     notes += checked.summary["notes"]
     same_track = same_track_offsets(trajectories, options.same_track, trusted=checked.trajectories)
+    same_track_metrics, same_track_note = same_track_summary(same_track)
+    notes += [same_track_note] if same_track_note else []
     adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs] + same_track
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, adjusted, control, notes, checked)
     clock["optimize"] = time.perf_counter() - t0
@@ -230,7 +232,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     if coverage is not None:
         adjustment["alongtrack_coverage"] = coverage
     adjustment["sd_check"] = checked.summary
-    adjustment["same_track"] = same_track_summary(same_track)
+    adjustment["same_track"] = same_track_metrics
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})

@@ -87,7 +87,8 @@ def _compared(run_a: Trajectory, run_b: Trajectory, options: SameTrackOptions,
         sure = _gnss(trusted[0], options)[at] & _gnss(trusted[1], options)[near]
     if sure.sum() < 3 or not abs(np.median(local[sure, 1])) <= options.max_apart_m:
         return []
-    local[:, 1:] -= np.median(local[sure, 1:], axis=0)
+    constant = np.median(local[sure, 1:], axis=0)
+    local[:, 1:] -= constant
     local[:, 0] = 0.0
     turn = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", frame[:, 0], track_frame(run_b.xyz)[near, 0])),
                                         0.0, 1.0)))
@@ -98,7 +99,8 @@ def _compared(run_a: Trajectory, run_b: Trajectory, options: SameTrackOptions,
     cov = options.sd_m**2 * np.eye(3)
     return [TileOffset(run_a.run_id, run_b.run_id, f"{PREFIX} {s}", f"{PREFIX} {s}", d[k], cov, 0, "ambiguous", None,
                        {"time_a": float(run_a.time[at[k]]), "time_b": float(run_b.time[near[k]]),
-                        "piecewise": {"axis": frame[k, 0].tolist()}, "same_track": True})
+                        "piecewise": {"axis": frame[k, 0].tolist()}, "same_track": True,
+                        "constant_m": constant.tolist()})
             for k, s in enumerate(segment)]
 
 
@@ -119,10 +121,17 @@ def track_frame(xyz: np.ndarray) -> np.ndarray:
     return frame
 
 
-def summary(observations: list[TileOffset]) -> dict:
-    """metrics.json: per pair of runs compared, how many places."""
-    counts: dict[str, int] = {}
+def summary(observations: list[TileOffset]) -> tuple[dict, str | None]:
+    """metrics.json: per pair of runs compared, how many places and the constant taken out
+    (across, up, m); and a note naming them (None: no runs were compared)."""
+    pairs: dict[str, dict] = {}
     for o in observations:
-        key = f"{o.run_a}~{o.run_b}"
-        counts[key] = counts.get(key, 0) + 1
-    return {"observations": len(observations), "run_pairs": counts}
+        entry = pairs.setdefault(f"{o.run_a}~{o.run_b}", {"places": 0, "constant_across_up_m": o.info["constant_m"]})
+        entry["places"] += 1
+    if not pairs:
+        return {"observations": 0, "run_pairs": {}}, None
+    note = ("runs on the same track compared position by position where both report GNSS (across and up, "
+            "pipeline.same_track; sd_m=0 turns it off): " + ", ".join(
+                f"{k} at {v['places']} places, their constant {100 * v['constant_across_up_m'][0]:.1f} cm across, "
+                f"{100 * v['constant_across_up_m'][1]:.1f} cm up" for k, v in sorted(pairs.items())))
+    return {"observations": len(observations), "run_pairs": pairs}, note

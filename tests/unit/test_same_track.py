@@ -6,7 +6,7 @@ import numpy as np
 
 from railtraj.builtins.spline_optimizer import SplineOptimizer
 from railtraj.data import Ties, TileOffset, Trajectory
-from railtraj.same_track import SameTrackOptions, same_track_offsets
+from railtraj.same_track import SameTrackOptions, same_track_offsets, summary
 from railtraj.sd_check import check_reported_sd, with_fading_margin
 
 SPEED, LENGTH = 10.0, 300.0
@@ -49,6 +49,9 @@ def test_runs_on_one_track_show_a_bias_across_where_both_report_gnss():
     np.testing.assert_allclose(d[:, 2], 0.0, atol=1e-9)
     np.testing.assert_allclose(d[:, 0], 0.0, atol=0.005)  # (across run a's own track, which the bias tilts)
     assert len({o.tile_a for o in out}) == len({int(w // 25) for w in where})  # one tile pair per 25 m
+    metrics, note = summary(out)
+    np.testing.assert_allclose(metrics["run_pairs"]["run_a~run_b"]["constant_across_up_m"], [-0.05, 0.0], atol=1e-9)
+    assert metrics["run_pairs"]["run_a~run_b"]["places"] == len(out) and "run_a~run_b" in note and "-5.0 cm across" in note
 
 
 def test_runs_on_other_tracks_are_not_compared():
