@@ -162,10 +162,9 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         sized = blamed & ~obs.weak
         if not sized.any() or traj.sd is None:
             continue
-        as_a, as_b = sized & (obs.run_a == run), sized & (obs.run_b == run)
-        seen = np.concatenate([d[as_a], d[as_b]])
-        extra, track_sd, margin[run] = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), seen,
-                                                 options.reach_m, options.fade_m, as_along=not options.along)
+        times, seen = _of_run(obs, sized, run, d)
+        extra, track_sd, margin[run] = _widening(traj, times, seen, options.reach_m, options.fade_m,
+                                                 as_along=not options.along)
         widening[run] = extra
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, extra))
         changed = np.any(track_sd > 0, axis=1)
@@ -260,6 +259,12 @@ def _vote_margin(trajectories: dict[str, Trajectory], where: np.ndarray, share: 
     return out
 
 
+def _of_run(obs: _Observations, mask: np.ndarray, run: str, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The times at which ``run`` made the observations in ``mask``, and their disagreements ``d``."""
+    as_a, as_b = mask & (obs.run_a == run), mask & (obs.run_b == run)
+    return np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), np.concatenate([d[as_a], d[as_b]])
+
+
 def _widened_at(widening: dict[str, np.ndarray], trajectories: dict[str, Trajectory], runs: np.ndarray,
                 times: np.ndarray) -> np.ndarray:
     """Whether each observation's run (``runs``) is widened (``widening``, per run) at its time."""
@@ -291,10 +296,7 @@ def _unsettled_margin(trajectories: dict[str, Trajectory], obs: _Observations, d
         traj = trajectories[run]
         if traj.sd is None or not mine.any():
             continue
-        as_a, as_b = mine & (obs.run_a == run), mine & (obs.run_b == run)
-        extra, _, fading = _widening(traj, np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]),
-                                     np.concatenate([d[as_a], d[as_b]]), options.reach_m, options.fade_m,
-                                     as_along=True)
+        extra, _, fading = _widening(traj, *_of_run(obs, mine, run, d), options.reach_m, options.fade_m, as_along=True)
         out[run] = extra + fading
     return out
 
