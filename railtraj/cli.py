@@ -76,6 +76,7 @@ def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> No
     from railtraj.io.atomic import atomic_write
     from railtraj.memory import MemoryMonitor
     from railtraj.pipeline import PipelineOptions, run_pipeline
+    from railtraj.portal import PortalOptions
     from railtraj.same_track import SameTrackOptions
     from railtraj.sd_check import SdCheckOptions
 
@@ -108,7 +109,8 @@ def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> No
                               sbet_crs=sbet_crs,
                               alongtrack=AlongTrackOptions(**OmegaConf.to_container(pipe.alongtrack)),
                               sd_check=SdCheckOptions(**OmegaConf.to_container(pipe.sd_check)),
-                              same_track=SameTrackOptions(**OmegaConf.to_container(pipe.same_track)))
+                              same_track=SameTrackOptions(**OmegaConf.to_container(pipe.same_track)),
+                              portal=PortalOptions(**OmegaConf.to_container(pipe.portal)))
     stages = build_stages(cfg)
     if anchors == "true":  # anchors required: missing grids fail now, not after the heavy work
         frame_transformer(cfg.crs, sbet_crs, grid_dir)

@@ -18,6 +18,7 @@ from omegaconf import MISSING
 from railtraj.alongtrack import AlongTrackOptions
 from railtraj.errors import ConfigError
 from railtraj.plugins import registry
+from railtraj.portal import PortalOptions
 from railtraj.same_track import SameTrackOptions
 from railtraj.sd_check import SdCheckOptions
 
@@ -49,6 +50,7 @@ class PipelineConfig:
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement
     same_track: SameTrackOptions = field(default_factory=SameTrackOptions)  # runs on one track compared where GNSS is good
+    portal: PortalOptions = field(default_factory=PortalOptions)  # a portal's GNSS keeps an sd in the corrected sd
 
 
 LOCAL = PipelineConfig(name="local", pairs="all", alongtrack=AlongTrackOptions(enabled=False))

@@ -57,6 +57,7 @@ from railtraj.io.tile_cache import DEFAULT_BUDGET_GB, tile_cache
 from railtraj.matching.objects import CONTEXT_M
 from railtraj.matching.spacing import median_point_spacing, sparse_profiles_note
 from railtraj.matching.threads import blas_one_thread
+from railtraj.portal import PortalOptions, with_portal_sd
 from railtraj.qc import PairClouds, distance_stats, pair_clouds, tie_residuals
 from railtraj.resume import Cache, cached_map
 from railtraj.same_track import SameTrackOptions, same_track_offsets
@@ -102,6 +103,7 @@ class PipelineOptions:
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)
     same_track: SameTrackOptions = field(default_factory=SameTrackOptions)
+    portal: PortalOptions = field(default_factory=PortalOptions)
 
 
 @dataclass
@@ -227,12 +229,16 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     notes += [same_track_note] if same_track_note else []
     adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs] + same_track
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, adjusted, control, notes, checked)
+    # a portal's GNSS may be biased alike in every run: only the corrected sd can say so
+    corrected, portal_metrics, portal_note = with_portal_sd(corrected, trajectories, options.portal, control_at)
+    notes += [portal_note] if portal_note else []
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     if coverage is not None:
         adjustment["alongtrack_coverage"] = coverage
     adjustment["sd_check"] = checked.summary
     adjustment["same_track"] = same_track_metrics
+    adjustment["portal"] = portal_metrics
     log.info("stage times: %s", ", ".join(f"{k} {v:.1f} s" for k, v in clock.items()))
     return PipelineResult(survey, options, trajectories, corrected, results, ties, clock, control, adjustment, notes,
                           resume={"tiles_reused": tiles_reused, "pairs_reused": pairs_reused})

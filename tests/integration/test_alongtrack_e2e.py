@@ -55,6 +55,7 @@ def test_commensurate_tunnel_is_corrected_without_accepting_an_alias(commensurat
     absolute_before = metrics["truth"]["before"]["overall"]["rms_h"]
     assert metrics["truth"]["after"]["overall"]["rms_h"] < absolute_before
     assert not [n for n in metrics["notes"] if "the scan is sparse" in n]  # 420 points per profile
+    assert {r["portals"] for r in metrics["adjustment"]["portal"]["runs"].values()} == {2}  # into the tunnel, out
 
 
 def test_runs_further_apart_than_the_matcher_searched_are_matched_again_further_out(commensurate, commensurate_out,
