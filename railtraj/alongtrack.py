@@ -56,6 +56,7 @@ class AlongTrackOptions:
     window_sd: float = 0.02         # m: along-track error of one window, which a rate from few or close windows inherits
     drift_rates: bool = True        # an unresolved pair's rate still observes how the runs' offset changes (info["drift_rate"])
     drift_rate_span: float = 10.0   # m: ... where its windows span this much at least, on an ambiguous (not degenerate) fit
+    drift_rate_windows: int = 4     # ... and it used this many windows at least (fewer: one window on an alias goes unseen)
     rate_radius: float = 50.0       # m: pairs this close along the track vote on each other's rate (0: off)
     rate_walk: float = 0.001        # (m/m)/sqrt(m): how fast the drift rate wanders at least (its bend as white noise; measured per run pair)
     walk_radius: float = 75.0       # m: ... and measured again from the pairs this close to each step (0: per run pair only)
@@ -624,7 +625,8 @@ def _with_drift_rate(o: TileOffset, pair: Pair, trajectories: dict[str, Trajecto
     0.046 (one rate 1 sd off bent the correction 4 cm, 20 m away)."""
     pw = o.info["piecewise"]
     s = _used_windows(pw)
-    if o.status != "ambiguous" or not np.isfinite(o.cov).all() or len(s) < 2 or np.ptp(s) < options.drift_rate_span:
+    if (o.status != "ambiguous" or not np.isfinite(o.cov).all() or len(s) < max(2, options.drift_rate_windows)
+            or np.ptp(s) < options.drift_rate_span):
         return o
     half = 0.5 * float(np.ptp(s))
     axis, gradient = np.asarray(pw["axis"], float), np.asarray(pw["gradient"], float)
