@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from railtraj.adjust.offsets import with_rejections
 from railtraj.alongtrack import (
     AlongTrackOptions,
     BeyondReach,
@@ -229,6 +230,10 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     notes += [same_track_note] if same_track_note else []
     adjusted = [o for k, o in enumerate(offsets) if k not in checked.unsettled_pairs] + same_track
     corrected, adjustment = optimize(stages.optimizer, trajectories, ties, adjusted, control, notes, checked)
+    # a pair the adjustment left out says so in offsets.csv
+    marked, rejected_note = with_rejections([p.offset for p in results], adjustment)
+    results = [replace(p, offset=o) for p, o in zip(results, marked, strict=True)]
+    notes += [rejected_note] if rejected_note else []
     # a portal's GNSS may be biased alike in every run: only the corrected sd can say so
     corrected, portal_metrics, portal_note = with_portal_sd(corrected, trajectories, options.portal, control_at)
     notes += [portal_note] if portal_note else []

@@ -6,6 +6,7 @@ so that both read the same observations the same way.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -17,6 +18,8 @@ from railtraj.data import TileOffset, Trajectory
 WEAK_STATUSES = ("degenerate", "ambiguous")
 #: along-track sd given to degenerate/ambiguous pairs, so that the track direction is dropped
 WEAK_ALONG_SD_M = 100.0
+#: the status of a pair whose offset the adjustment found at odds with everything else and left out
+REJECTED = "rejected"
 
 
 def offset_covariance(o: TileOffset) -> np.ndarray:
@@ -62,4 +65,31 @@ def usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
     return bool(np.isfinite(o.d).all() and np.isfinite(o.cov).all() and np.isfinite(times).all())
 
 
-__all__ = ["WEAK_ALONG_SD_M", "WEAK_STATUSES", "by_window", "offset_covariance", "usable_offset"]
+def with_rejections(offsets: Sequence[TileOffset], diagnostics: dict) -> tuple[list[TileOffset], str]:
+    """``offsets`` with the pairs whose offset the optimizer rejected (its diagnostics'
+    ``rejected`` rows of kind ``offset``) given status ``rejected``, the status they had kept in
+    ``info["rejected"]``; and a note ('' when none).
+
+    A pair's status is what offsets.csv tells a surveyor about it. Held-out mixed 5015: a pair
+    the along-track chain had fixed (``coarse``) was 0.86 m off across the track, which its
+    neighbours 5 m away contradicted; the adjustment rejected it (101 sd), yet offsets.csv still
+    called it coarse with a 9 mm sd."""
+    rows = {(r["run_a"], r["run_b"], r["tile_a"], r["tile_b"]): r["whitened_residual"]
+            for r in diagnostics.get("rejected", []) if r.get("kind") == "offset"}
+    out, worst = [], []
+    for o in offsets:
+        residual = rows.get((o.run_a, o.run_b, o.tile_a, o.tile_b))
+        if residual is None or o.status == REJECTED:
+            out.append(o)
+            continue
+        out.append(replace(o, status=REJECTED, info=dict(o.info, rejected={"status_before": o.status,
+                                                                            "whitened_residual": residual})))
+        worst.append(residual)
+    if not worst:
+        return out, ""
+    return out, (f"{len(worst)} tile pair(s) at odds with the other observations (up to {max(worst):.0f} sd) were "
+                 f"left out of the adjustment: status rejected in offsets.csv")
+
+
+__all__ = ["REJECTED", "WEAK_ALONG_SD_M", "WEAK_STATUSES", "by_window", "offset_covariance", "usable_offset",
+           "with_rejections"]

@@ -37,6 +37,7 @@ REASONS = {
     "no_overlap": "the two clouds share too little surface at any offset",
     "few_keypoints": "too few keypoints in one of the tiles",
     "unmatched": "the pair was not matched",
+    "rejected": "its offset contradicts the other observations: the adjustment left it out",
 }
 
 

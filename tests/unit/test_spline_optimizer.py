@@ -214,6 +214,26 @@ def test_an_unresolved_pairs_drift_rate_carries_the_along_track_offset(use_drift
         assert np.sqrt(np.mean(along**2)) > 0.8 * np.sqrt(np.mean(before**2))
         assert "drift_rate" not in diag["observations"]
 
+def test_a_pair_the_adjustment_rejects_is_reported_rejected():
+    """Coarse pairs every 12.5 m, one of them 0.86 m off across the track with a 9 mm sd (a
+    matcher's wrong peak the along-track chain kept, held-out mixed 5015): the adjustment leaves
+    it out and offsets.csv must not call it coarse; the others keep their status."""
+    from railtraj.adjust.offsets import REJECTED, with_rejections
+
+    a, b = _runs(10.0, 12.0)
+    offsets = []
+    for k, s in enumerate(np.arange(TUNNEL[0] + 10, TUNNEL[1] - 10, 12.5)):
+        d = a.error(np.array([s]))[0] - b.error(np.array([s]))[0] + ([0.0, 0.86, 0.0] if k == 10 else 0.0)
+        offsets.append(TileOffset("run_a", "run_b", f"t{k}", f"t{k}", d=d, cov=np.diag([0.02, 0.009, 0.007]) ** 2,
+                                  status="coarse", info={"time_a": float(a.time_at(np.array([s]))[0]),
+                                                         "time_b": float(b.time_at(np.array([s]))[0])}))
+    out, diag = _optimize(a, b, [], offsets)
+    marked, note = with_rejections(offsets, diag)
+    assert [o.status for o in marked] == ["coarse"] * 10 + [REJECTED] + ["coarse"] * (len(offsets) - 11)
+    assert marked[10].info["rejected"]["status_before"] == "coarse" and "1 tile pair(s)" in note
+    assert with_rejections(offsets, {}) == (offsets, "")
+
+
 def test_control_points_pin_the_absolute_position():
     a, b = _runs(10.0, 13.0)
     rng = np.random.default_rng(4)
