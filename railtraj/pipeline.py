@@ -233,10 +233,12 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     # a pair the adjustment left out says so in offsets.csv
     marked, rejected_note = with_rejections([p.offset for p in results], adjustment)
     results = [replace(p, offset=o) for p, o in zip(results, marked, strict=True)]
-    notes += [rejected_note] if rejected_note else []
     # a portal's GNSS may be biased alike in every run: only the corrected sd can say so
     corrected, portal_metrics, portal_note = with_portal_sd(corrected, trajectories, options.portal, control_at)
-    notes += [portal_note] if portal_note else []
+    for note, level in ((rejected_note, logging.WARNING), (portal_note, logging.INFO)):
+        if note:
+            log.log(level, note)
+            notes.append(note)
     clock["optimize"] = time.perf_counter() - t0
     adjustment["alongtrack"] = alongtrack
     if coverage is not None:

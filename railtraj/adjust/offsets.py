@@ -72,7 +72,7 @@ def with_rejections(offsets: Sequence[TileOffset], diagnostics: dict) -> tuple[l
 
     A pair's status is what offsets.csv tells a surveyor about it. Held-out mixed 5015: a pair
     the along-track chain had fixed (``coarse``) was 0.86 m off across the track, which its
-    neighbours 5 m away contradicted; the adjustment rejected it (101 sd), yet offsets.csv still
+    neighbours 5 m away contradicted; the adjustment rejected it (102 sd), yet offsets.csv still
     called it coarse with a 9 mm sd."""
     rows = {(r["run_a"], r["run_b"], r["tile_a"], r["tile_b"]): r["whitened_residual"]
             for r in diagnostics.get("rejected", []) if r.get("kind") == "offset"}
