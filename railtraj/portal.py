@@ -39,13 +39,10 @@ def portal_weight(traj: Trajectory, options: PortalOptions, control_at: np.ndarr
     """Per epoch of ``traj``, 1 within ``reach_m`` (along its path) of a portal, where its reported
     horizontal sd passes ``gnss_sd_m``, fading linearly to 0 over ``fade_m`` beyond; 0 near
     control (within ``reach_m`` in plan, back to 1 over ``fade_m``)."""
-    if traj.sd is None or len(traj) < 2:
-        return np.zeros(len(traj))
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xyz[:, :2], axis=0), axis=1))])
-    gnss = np.linalg.norm(traj.sd[:, :2], axis=1) <= options.gnss_sd_m
-    crossing = np.flatnonzero(gnss[1:] != gnss[:-1])
+    crossing = _crossings(traj, options)
     if not len(crossing):
         return np.zeros(len(traj))
+    path = traj.travelled()
     # the portals along the path (increasing: it only grows), between two sentinels
     at = np.concatenate([[-np.inf], 0.5 * (path[crossing] + path[crossing + 1]), [np.inf]])
     after = np.searchsorted(at, path)
@@ -74,8 +71,7 @@ def with_portal_sd(corrected: dict[str, Trajectory], reported: dict[str, Traject
             continue
         sd = np.sqrt(traj.sd ** 2 + (options.sd_m * weight[:, None]) ** 2)
         out[run] = traj.with_positions(traj.xyz, sd)
-        gnss = np.linalg.norm(source.sd[:, :2], axis=1) <= options.gnss_sd_m
-        per_run[run] = {"portals": int((gnss[1:] != gnss[:-1]).sum()), "epochs": int((weight > 0).sum())}
+        per_run[run] = {"portals": len(_crossings(source, options)), "epochs": int((weight > 0).sum())}
     metrics = {"sd_m": options.sd_m, "reach_m": options.reach_m, "fade_m": options.fade_m, "runs": per_run}
     if not per_run:
         return out, metrics, ""
@@ -84,6 +80,15 @@ def with_portal_sd(corrected: dict[str, Trajectory], reported: dict[str, Traject
             f"share a multipath bias no tile pair shows, so the corrected sd there keeps {options.sd_m:.2f} m "
             f"per axis over {options.reach_m:.0f} m either side (pipeline.portal; control there settles it)")
     return out, metrics, note
+
+
+def _crossings(traj: Trajectory, options: PortalOptions) -> np.ndarray:
+    """Indices ``i`` where the run's reported horizontal sd passes ``gnss_sd_m`` between epochs
+    ``i`` and ``i + 1``: its portals (none without sd)."""
+    if traj.sd is None or len(traj) < 2:
+        return np.zeros(0, dtype=np.int64)
+    gnss = np.linalg.norm(traj.sd[:, :2], axis=1) <= options.gnss_sd_m
+    return np.flatnonzero(gnss[1:] != gnss[:-1])
 
 
 def _fade(distance: np.ndarray, options: PortalOptions) -> np.ndarray:
