@@ -141,6 +141,12 @@ class Trajectory:
         return replace(self, rpy=rotation_to_attitude(rot))
 
 
+def reports_gnss(sd: np.ndarray, gnss_sd_m: float) -> np.ndarray:
+    """Where a reported sd (n, 3) is of GNSS quality: its horizontal sd at most ``gnss_sd_m``.
+    The one test the sd check, the same-track comparison and the portals share."""
+    return np.linalg.norm(np.asarray(sd)[:, :2], axis=1) <= gnss_sd_m
+
+
 def check_span(run_id: str, span: tuple[float, float], times: np.ndarray, what: str = "points") -> None:
     """Raise :class:`TrajectoryError` unless every time in ``times`` lies within ``span``, the
     (first, last) epoch time of run ``run_id``'s trajectory. Takes the span rather than the

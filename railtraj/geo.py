@@ -47,3 +47,16 @@ def attitude_from_direction(direction_enu: np.ndarray, roll_deg: np.ndarray | fl
     pitch = np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
     roll = np.broadcast_to(np.asarray(roll_deg, dtype=float), heading.shape)
     return np.column_stack([roll, pitch, np.mod(heading, 360.0)])
+
+
+def track_frames(xyz: np.ndarray) -> np.ndarray:
+    """(n, 3, 3): at each epoch of a path ``xyz`` (n, 3), rows along the track (horizontal),
+    across it (left) and up. (:func:`railtraj.matching.piecewise.track_frame`: one axis's.)"""
+    tangent = np.gradient(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
+    norm = np.linalg.norm(tangent, axis=1)
+    tangent = np.where(norm[:, None] > 0, tangent / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+    frame = np.zeros((len(xyz), 3, 3))
+    frame[:, 0, :2] = tangent
+    frame[:, 1, :2] = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    frame[:, 2, 2] = 1.0
+    return frame

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.data import Trajectory
+from railtraj.data import Trajectory, reports_gnss
 
 
 @dataclass
@@ -87,7 +87,7 @@ def _crossings(traj: Trajectory, options: PortalOptions) -> np.ndarray:
     ``i`` and ``i + 1``: its portals (none without sd)."""
     if traj.sd is None or len(traj) < 2:
         return np.zeros(0, dtype=np.int64)
-    gnss = np.linalg.norm(traj.sd[:, :2], axis=1) <= options.gnss_sd_m
+    gnss = reports_gnss(traj.sd, options.gnss_sd_m)
     return np.flatnonzero(gnss[1:] != gnss[:-1])
 
 

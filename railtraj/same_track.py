@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from railtraj.data import TileOffset, Trajectory
+from railtraj.data import TileOffset, Trajectory, reports_gnss
+from railtraj.geo import track_frames
 
 #: the tile name of a same-track observation: ``same track <segment>``
 PREFIX = "same track"
@@ -71,26 +72,26 @@ def _compared(run_a: Trajectory, run_b: Trajectory, options: SameTrackOptions,
     if run_a.sd is None or run_b.sd is None or len(run_a.time) < 2 or len(run_b.time) < 2:
         return []
     travelled = run_a.travelled()
-    gnss = _gnss(run_a, options)
+    gnss = reports_gnss(run_a.sd, options.gnss_sd_m)
     at = np.flatnonzero(gnss & (np.diff(np.floor(travelled / options.spacing_m), prepend=-1) > 0))
     if not len(at):
         return []
     distance, near = cKDTree(run_b.xyz[:, :2]).query(run_a.xyz[at, :2])
-    keep = _gnss(run_b, options)[near] & (distance < options.spacing_m)
+    keep = reports_gnss(run_b.sd, options.gnss_sd_m)[near] & (distance < options.spacing_m)
     at, near = at[keep], near[keep]
     if len(at) < 3:
         return []
-    frame = track_frame(run_a.xyz)[at]
+    frame = track_frames(run_a.xyz)[at]
     local = np.einsum("nij,nj->ni", frame, run_a.xyz[at] - run_b.xyz[near])  # along, across, up
     sure = np.ones(len(at), bool)
     if trusted is not None:
-        sure = _gnss(trusted[0], options)[at] & _gnss(trusted[1], options)[near]
+        sure = reports_gnss(trusted[0].sd, options.gnss_sd_m)[at] & reports_gnss(trusted[1].sd, options.gnss_sd_m)[near]
     if sure.sum() < 3 or not abs(np.median(local[sure, 1])) <= options.max_apart_m:
         return []
     constant = np.median(local[sure, 1:], axis=0)
     local[:, 1:] -= constant
     local[:, 0] = 0.0
-    turn = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", frame[:, 0], track_frame(run_b.xyz)[near, 0])),
+    turn = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ni,ni->n", frame[:, 0], track_frames(run_b.xyz)[near, 0])),
                                         0.0, 1.0)))
     keep = (np.abs(local[:, 1]) <= options.max_apart_m) & (turn <= options.max_turn_deg)
     at, near, frame, local = at[keep], near[keep], frame[keep], local[keep]
@@ -102,23 +103,6 @@ def _compared(run_a: Trajectory, run_b: Trajectory, options: SameTrackOptions,
                         "piecewise": {"axis": frame[k, 0].tolist()}, "same_track": True,
                         "constant_m": constant.tolist()})
             for k, s in enumerate(segment)]
-
-
-def _gnss(run: Trajectory, options: SameTrackOptions) -> np.ndarray:
-    """Epochs where the run reports GNSS-quality horizontal sd."""
-    return np.linalg.norm(run.sd[:, :2], axis=1) <= options.gnss_sd_m
-
-
-def track_frame(xyz: np.ndarray) -> np.ndarray:
-    """(n, 3, 3): rows along the track (horizontal), across it (left) and up, at each epoch."""
-    tangent = np.gradient(xyz[:, :2], axis=0) if len(xyz) > 1 else np.array([[1.0, 0.0]])
-    norm = np.linalg.norm(tangent, axis=1)
-    tangent = np.where(norm[:, None] > 0, tangent / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-    frame = np.zeros((len(xyz), 3, 3))
-    frame[:, 0, :2] = tangent
-    frame[:, 1, :2] = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    frame[:, 2, 2] = 1.0
-    return frame
 
 
 def summary(observations: list[TileOffset]) -> tuple[dict, str | None]:

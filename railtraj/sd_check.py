@@ -43,8 +43,8 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from railtraj.adjust.offsets import WEAK_STATUSES, by_window, offset_covariance, usable_offset
-from railtraj.data import TileOffset, Trajectory
-from railtraj.same_track import track_frame
+from railtraj.data import TileOffset, Trajectory, reports_gnss
+from railtraj.geo import track_frames
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
     reported = [_reported_sd(trajectories, runs, times) for runs, times in ((obs.run_a, obs.time_a),
                                                                             (obs.run_b, obs.time_b))]
     z, d, obs_sd = _z(obs, reported, options.max_weak_sd_m)
-    gnss = np.maximum(*(np.linalg.norm(sd[:, :2], axis=1) for sd in reported)) <= options.gnss_sd_m
+    gnss = reports_gnss(reported[0], options.gnss_sd_m) & reports_gnss(reported[1], options.gnss_sd_m)
     limit = np.where(gnss, options.max_z_gnss, options.max_z)
     # a bias spans tens of metres, seen by neighbouring tile pairs (25 m): two reaches apart
     bad = _corroborated(obs, z > limit, 2 * options.reach_m)
@@ -455,7 +455,7 @@ def _across_and_up(obs: _Observations, trajectories: dict[str, Trajectory], max_
     for run, traj in trajectories.items():
         m = (obs.run_a == run) & ~unseen
         if m.any():
-            along = track_frame(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
+            along = track_frames(traj.xyz)[np.clip(np.searchsorted(traj.time, obs.time_a[m]), 0, len(traj.time) - 1), 0]
             cov[m] += UNSEEN_VAR * np.einsum("ni,nj->nij", along, along)
     return replace(obs, cov=cov)
 
@@ -579,7 +579,7 @@ def _widening(traj: Trajectory, times: np.ndarray, seen: np.ndarray, reach_m: fl
     widening fades out linearly over the next ``fade_m`` metres (:func:`with_fading_margin`)."""
     from scipy.ndimage import maximum_filter1d
 
-    frame = track_frame(traj.xyz)
+    frame = track_frames(traj.xyz)
     bins = np.floor(traj.travelled()).astype(np.int64)
     at = np.clip(np.searchsorted(traj.time, times), 0, len(traj.time) - 1)
     size = np.abs(np.einsum("nij,nj->ni", frame[at], seen))
