@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from railtraj.adjust.offsets import REJECTED
 from railtraj.report.chainage import Chainage
 
 ALIGNED, WEAK, UNRESOLVED, REFUSED = "aligned", "weak along-track", "unresolved", "refused"
@@ -37,7 +38,7 @@ REASONS = {
     "no_overlap": "the two clouds share too little surface at any offset",
     "few_keypoints": "too few keypoints in one of the tiles",
     "unmatched": "the pair was not matched",
-    "rejected": "its offset contradicts the other observations: the adjustment left it out",
+    REJECTED: "its offset contradicts the other observations: the adjustment left it out",
 }
 
 
