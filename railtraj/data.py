@@ -242,6 +242,14 @@ class Keypoints:
         return Keypoints(self.xyz[idx], self.gps_time[idx], self.score[idx],
                          None if self.descriptors is None else self.descriptors[idx])
 
+    @staticmethod
+    def concatenate(parts: list[Keypoints]) -> Keypoints:
+        """The keypoints of ``parts`` in order (descriptors where every part has them)."""
+        described = all(p.descriptors is not None for p in parts)
+        return Keypoints(np.vstack([p.xyz for p in parts]), np.concatenate([p.gps_time for p in parts]),
+                         np.concatenate([p.score for p in parts]),
+                         np.vstack([p.descriptors for p in parts]) if described else None)
+
 
 @dataclass(frozen=True)
 class Ties:

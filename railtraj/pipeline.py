@@ -48,6 +48,7 @@ from railtraj.io.survey import (
     Survey,
     TilePair,
     find_overlaps,
+    grid_cells,
     in_parts,
     open_survey,
     require_overlaps,
@@ -260,11 +261,13 @@ def _detect(pairs: list[TilePair], keypoints: dict, tile_key: dict, trajectories
     tiles = [t for t in dict.fromkeys(t for k in order for t in ((pairs[k].run_a, pairs[k].tile_a.path),
                                                                  (pairs[k].run_b, pairs[k].tile_b.path)))
              if t not in keypoints]
-    keys = [cache.tile_key(run, path, trajectories[run].span) if cache else "" for run, path in tiles]
+    keys = [cache.tile_key(run, path, trajectories[run].span, options.pair_part_m) if cache else ""
+            for run, path in tiles]
     with blas_one_thread():  # (railtraj.matching.threads: faster here, same results)
         detected, reused = cached_map(
             stages.executor, detect_tile,
-            [(run, path, trajectories[run].span, stages, options.tile_cache_gb) for run, path in tiles],
+            [(run, path, trajectories[run].span, stages, options.tile_cache_gb, options.pair_part_m)
+             for run, path in tiles],
             keys, cache, "tiles", progress=progress or _log_progress("detected keypoints in", "tiles"))
     return ({**keypoints, **dict(zip(tiles, detected, strict=True))}, {**tile_key, **dict(zip(tiles, keys, strict=True))},
             reused)
@@ -478,17 +481,21 @@ def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
 
     The job carries the trajectory's span, not the trajectory: workers need nothing more. The tile
     stays in this process's tile cache for the pairs matched next (``cache_gb``)."""
-    run_id, path, span, stages, cache_gb = job
+    run_id, path, span, stages, cache_gb, part_m = job
     t = time.perf_counter()
     tile = tile_cache(cache_gb).read(path, run_id=run_id)
     check_span(run_id, span, tile.gps_time, f"points of {run_id}/{path.name}")
-    seconds = {"read": time.perf_counter() - t}
-    t = time.perf_counter()
-    kp = stages.detector.detect(tile)
-    seconds["detect"] = time.perf_counter() - t
-    t = time.perf_counter()
-    kp = stages.descriptor.describe(tile, kp)
-    seconds["describe"] = time.perf_counter() - t
+    seconds = {"read": time.perf_counter() - t, "detect": 0.0, "describe": 0.0}
+    found = []
+    for square in grid_cells(tile.xyz, part_m):  # a large tile in the squares its pairs are matched in
+        part = tile if len(square) == len(tile) else tile.subset(square)
+        t = time.perf_counter()
+        kp = stages.detector.detect(part)
+        seconds["detect"] += time.perf_counter() - t
+        t = time.perf_counter()
+        found.append(stages.descriptor.describe(part, kp))
+        seconds["describe"] += time.perf_counter() - t
+    kp = found[0] if len(found) == 1 else Keypoints.concatenate(found)
     log.debug("%s/%s: %d points, %d keypoints", run_id, path.name, len(tile), len(kp))
     return kp, seconds
 

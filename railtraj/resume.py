@@ -133,8 +133,9 @@ class Cache:
         self.job = job  # the job's name in a sweep's shared cache; None: the cache of one out folder
         self.used: set[Path] = set()
 
-    def tile_key(self, run_id: str, tile_path: Path, trajectory_span: tuple[float, float]) -> str:
-        return digest("tile", self.code.get("tiles"), run_id, file_identity(tile_path), trajectory_span,
+    def tile_key(self, run_id: str, tile_path: Path, trajectory_span: tuple[float, float], part_m: float) -> str:
+        """``part_m``: the grid whose squares a large tile is detected in (``pipeline.pair_part_m``)."""
+        return digest("tile", self.code.get("tiles"), run_id, file_identity(tile_path), trajectory_span, part_m,
                       self.configs.get("detector"), self.configs.get("descriptor"))
 
     def pair_key(self, pair, key_a: str, key_b: str, match_options: Any) -> str:
