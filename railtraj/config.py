@@ -38,7 +38,7 @@ class PipelineConfig:
     tile: str | None = None         # local only: tile name or "x,y"
     max_pairs: int = 0                 # 0: no limit (a cap for quick looks)
     min_overlap_m: float = 2.0         # overlap of tile bounding boxes in x and y
-    pair_part_m: float = 25.0          # larger tiles are matched in parts this long (0: whole tiles)
+    pair_part_m: float = 25.0          # larger tiles are matched in parts this long, detected in squares of this grid (0: whole)
     max_misalignment_m: float = 3.0    # how far apart the same feature may be in two runs
     # where the along-track chains put two runs further apart than that, their tile pairs are
     # matched again within the distance they need, up to this (m; at most max_misalignment_m: never)

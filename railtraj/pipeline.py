@@ -477,7 +477,8 @@ def _pair_at(pair: TilePair, tile: str) -> bool:
 
 
 def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
-    """Read one tile, check its run's trajectory span covers it, detect and describe its keypoints.
+    """Read one tile, check its run's trajectory span covers it, detect and describe its keypoints
+    (a tile longer than 1.2 ``part_m`` in the squares of that grid: :func:`grid_cells`).
 
     The job carries the trajectory's span, not the trajectory: workers need nothing more. The tile
     stays in this process's tile cache for the pairs matched next (``cache_gb``)."""
