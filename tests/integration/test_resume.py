@@ -107,16 +107,6 @@ def test_changed_matcher_option_rematches_but_keeps_keypoints(baseline, survey, 
     assert cached(out, "pairs") == pairs   # the entries of the old option were pruned
 
 
-def test_a_changed_detection_grid_redetects_every_tile(baseline, survey, tmp_path):
-    """A tile longer than 1.2 ``pipeline.pair_part_m`` is detected in the squares of that grid
-    (railtraj.io.survey.grid_cells): the grid is part of every tile's key."""
-    reference, _ = baseline
-    out = tmp_path / "out"
-    shutil.copytree(reference, out)
-    metrics = run(survey, out, "pipeline.pair_part_m=0")
-    assert metrics["resume"] == {"tiles_reused": 0, "pairs_reused": 0}
-
-
 def test_changed_tile_redetects_that_tile_and_rematches_its_pairs(baseline, survey, tmp_path):
     reference, _ = baseline
     out = tmp_path / "out"

@@ -13,6 +13,7 @@ from railtraj.io.survey import grid_cells
 from railtraj.matching.synthetic import placed, tunnel_tile
 from railtraj.pipeline import detect_tile
 from railtraj.plugins import registry
+from railtraj.resume import Cache
 
 
 def test_grid_cells_cut_a_large_tile_on_the_survey_grid_and_leave_a_small_one_whole():
@@ -62,3 +63,12 @@ def test_a_large_tile_gives_the_keypoints_of_its_25_m_squares(lining):
     np.testing.assert_array_equal(got.xyz, want)
     np.testing.assert_array_equal(got.descriptors, np.vstack([k.descriptors for k in parts]))
     assert len(_keypoints(whole, 0.0)) < len(got)  # detected whole: no cuts inside
+
+
+def test_the_detection_grid_is_part_of_a_tiles_cache_key(lining, tmp_path):
+    """Another ``pipeline.pair_part_m`` detects a large tile in other squares: a resumed run
+    must not reuse its keypoints."""
+    whole, _ = lining
+    cache = Cache(tmp_path, {"detector": {"name": "iss"}, "descriptor": {"name": "fpfh"}})
+    keys = {cache.tile_key("A", whole, (0.0, 1e9), part_m) for part_m in (25.0, 25.0, 50.0, 0.0)}
+    assert len(keys) == 3
