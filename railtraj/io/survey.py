@@ -180,6 +180,11 @@ def find_overlaps(survey: Survey, margin: float = 0.0, min_overlap_m: float = 1.
     return pairs
 
 
+#: a tile (pair) longer than this many ``pipeline.pair_part_m`` in x or y is matched in parts
+#: (:func:`in_parts`) and detected in the squares of that grid (:func:`grid_cells`)
+LARGE_TILE = 1.2
+
+
 def in_parts(pairs: list[TilePair], part_m: float) -> list[TilePair]:
     """``pairs`` with every overlap longer than ``1.2 part_m`` in x or y cut into equal parts of
     at most ``part_m`` (the same tiles, a smaller overlap box each); ``part_m`` 0: unchanged.
@@ -196,7 +201,7 @@ def in_parts(pairs: list[TilePair], part_m: float) -> list[TilePair]:
     out: list[TilePair] = []
     for p in pairs:  # a few hundred pairs, not points
         lo, hi = p.overlap_min[:2], p.overlap_max[:2]
-        n = np.where(hi - lo > 1.2 * part_m, np.ceil((hi - lo) / part_m), 1).astype(int)
+        n = np.where(hi - lo > LARGE_TILE * part_m, np.ceil((hi - lo) / part_m), 1).astype(int)
         if (n == 1).all():
             out.append(p)
             continue
@@ -220,7 +225,7 @@ def grid_cells(xyz: np.ndarray, part_m: float) -> list[np.ndarray]:
     survey in 50 m tiles 0.90 / 1.29 m, its pairs' parts without a tile edge refused for too
     few keypoints. Detected in the squares :func:`in_parts` matches, a large tile gives the
     keypoints of the 25 m tiles the matcher was built on (SPEC: tiles may have any size)."""
-    if part_m <= 0 or not len(xyz) or (np.ptp(xyz[:, :2], axis=0) <= 1.2 * part_m).all():
+    if part_m <= 0 or not len(xyz) or (np.ptp(xyz[:, :2], axis=0) <= LARGE_TILE * part_m).all():
         return [np.arange(len(xyz))]
     _, square = np.unique(np.floor(xyz[:, :2] / part_m).astype(np.int64), axis=0, return_inverse=True)
     order = np.argsort(square.ravel(), kind="stable")
