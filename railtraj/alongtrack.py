@@ -1222,9 +1222,19 @@ def _apply(o: TileOffset, shift: float, resolved: bool, trajectories: dict[str, 
     d = o.d + shift * axis
     info["resolved"] = "joint" if o.status != "ok" else "moved"
     info["time_a"] = _time_after_shift(trajectories[o.run_a], o.info["time_a"], shift * axis)
+    if shift and o.info.get("weak_windows"):  # its windows move with it (the adjustment may read them)
+        info["weak_windows"] = _shifted_windows(o.info["weak_windows"], trajectories[o.run_a], shift * axis)
     return replace(o, d=d, cov=_across_floor(o, fit_cov + alias_var * np.outer(axis, axis)),
                    status=COARSE if coarse else "ok",
                    ties=Ties.empty(o.run_a, o.run_b), info=info)
+
+
+def _shifted_windows(windows: dict, traj_a: Trajectory, move: np.ndarray) -> dict:
+    """A pair's windows (``weak_windows``) on the alias ``move`` away, as :func:`_apply` moves
+    the pair: each window's offset by ``move``, run a's time to where it passed the point ``move``
+    further along."""
+    return dict(windows, d=(np.asarray(windows["d"], float) + move).tolist(),
+                time_a=[_time_after_shift(traj_a, t, move) for t in windows["time_a"]])
 
 
 def _across_floor(o: TileOffset, cov: np.ndarray) -> np.ndarray:

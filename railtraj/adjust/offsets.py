@@ -55,6 +55,30 @@ def by_window(o: TileOffset) -> list[TileOffset]:
             for d, t_a, t_b in zip(windows["d"], windows["time_a"], windows["time_b"], strict=True)]
 
 
+def resolved_by_window(o: TileOffset) -> list[TileOffset]:
+    """A resolved pair without ties (``ok`` fixed by the chain along the track, or ``coarse``) as
+    one offset per window of its curve (``weak_windows``, moved with the pair onto its alias):
+    across and up in every window, along the track in those the curve used along it. Each carries
+    the pair's covariance times the number of windows, so together they say what the pair says;
+    a pair with fewer than two windows on record is returned as it is.
+
+    Where a run's GNSS is biased the adjustment leaves it free (:mod:`railtraj.sd_check`) and
+    the pair's one offset, at its reference point, is all it has of the bias; but a multipath
+    bias peaks at the portal within a tile or two. On held-out portal surveys the windows of the
+    pairs there held the peak to 1-2 cm where the one-offset reading missed it by 8-12 cm
+    (docs/method.md, "Session 53")."""
+    windows = o.info.get("weak_windows")
+    ties = o.ties is not None and len(o.ties)
+    if o.status not in ("ok", COARSE) or ties or not windows or len(windows["d"]) < 2 or "along" not in windows:
+        return [o]
+    axis = _track_axis(o)
+    cov = np.asarray(o.cov, float) * len(windows["d"])
+    return [replace(o, d=np.asarray(d, float), cov=cov if along else cov + WEAK_ALONG_SD_M**2 * np.outer(axis, axis),
+                    info=dict(o.info, time_a=t_a, time_b=t_b))
+            for d, t_a, t_b, along in zip(windows["d"], windows["time_a"], windows["time_b"], windows["along"],
+                                          strict=True)]
+
+
 def usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:
     """A degenerate/ambiguous pair, or an ok pair without ties, with a finite offset, covariance
     and observation times."""
@@ -91,5 +115,5 @@ def with_rejections(offsets: Sequence[TileOffset], diagnostics: dict) -> tuple[l
                  f"left out of the adjustment: status rejected in offsets.csv")
 
 
-__all__ = ["REJECTED", "WEAK_ALONG_SD_M", "WEAK_STATUSES", "by_window", "offset_covariance", "usable_offset",
-           "with_rejections"]
+__all__ = ["REJECTED", "WEAK_ALONG_SD_M", "WEAK_STATUSES", "by_window", "offset_covariance", "resolved_by_window",
+           "usable_offset", "with_rejections"]

@@ -27,7 +27,7 @@ import numpy as np
 
 from railtraj.adjust import observations as obs
 from railtraj.adjust.model import CorrectionModel
-from railtraj.adjust.offsets import offset_covariance, usable_offset
+from railtraj.adjust.offsets import offset_covariance, resolved_by_window, usable_offset
 from railtraj.adjust.recentre import recentre
 from railtraj.adjust.solve import solve
 from railtraj.adjust.stiffness import bend_density, stretches
@@ -55,6 +55,7 @@ class SplineConfig:
     max_weak_sd_m: float = 0.3         # directions of a weak tile offset with larger sd are not used
     use_weak_offsets: bool = True      # degenerate/ambiguous pairs constrain across and up
     use_drift_rates: bool = True       # ... and their curve's change of offset along the track (info["drift_rate"])
+    windows_where_widened: bool = True  # resolved pairs without ties enter window by window where the sd check widened a run
     robust_confidence: float = 0.999   # chi-square level beyond which an observation is rejected
     default_sd_m: float = 1.0          # prior sd where the trajectory reports none
     prior_correlation: float = 500.0   # (knot_unit) length over which the reported sd is one independent error
@@ -83,6 +84,7 @@ class SplineOptimizer:
         self._bends: dict[str, list[dict]] = {}
         blocks = [b for r in sorted(trajectories)
                   for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
+        offsets, by_window = _by_window_where_widened(offsets, trajectories, widening, cfg.windows_where_widened)
         data = [self._ties(model, ties), self._offsets(model, offsets, trajectories),
                 self._drift_rates(model, offsets, trajectories), self._control(model, control, trajectories)]
         data = [b for b in data if b is not None]
@@ -109,6 +111,8 @@ class SplineOptimizer:
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
         self.diagnostics["bend_raised"] = self._bends
+        if by_window:
+            self.diagnostics["by_window"] = by_window
         with_control = any(b.kind == "control" and len(b) for b in data)
         if cfg.recentre and not with_control:
             out, shift = recentre(trajectories, out, claimed)
@@ -258,6 +262,36 @@ class SplineOptimizer:
                 "observations": counts, "rejected": rejected, "gnc_iterations": sol.iterations,
                 "bandwidth": sol.banded.bandwidth, "under_constrained": spans, "seconds": round(seconds, 3),
                 "notes": []}
+
+
+def _by_window_where_widened(offsets: Sequence[TileOffset], trajectories: dict[str, Trajectory],
+                             widening: dict[str, np.ndarray], enabled: bool) -> tuple[list[TileOffset], dict]:
+    """``offsets`` with each resolved pair without ties that lies where the sd check widened one
+    of its runs read window by window (:func:`railtraj.adjust.offsets.resolved_by_window`), and
+    how many pairs and windows were ({} when none).
+
+    Only there: elsewhere the runs' GNSS and drift model hold the correction between pairs, and
+    the windows' own scatter cost accuracy (docs/method.md, "Session 48")."""
+    if not (enabled and widening):
+        return list(offsets), {}
+    out, pairs, windows = [], 0, 0
+    for o in offsets:  # tile pairs: tens to hundreds, a handful of windows each
+        parts = resolved_by_window(o)
+        if len(parts) > 1 and any(_widened_at(widening.get(run), trajectories.get(run),
+                                              np.array([p.info[key] for p in parts], float))
+                                  for run, key in ((o.run_a, "time_a"), (o.run_b, "time_b"))):
+            out += parts
+            pairs, windows = pairs + 1, windows + len(parts)
+        else:
+            out.append(o)
+    return out, ({"pairs": pairs, "windows": windows} if pairs else {})
+
+
+def _widened_at(widening: np.ndarray | None, traj: Trajectory | None, times: np.ndarray) -> bool:
+    """Whether the run's sd was widened at any of ``times``."""
+    if widening is None or traj is None:
+        return False
+    return bool((np.trace(covariance_at(times, traj.time, widening), axis1=1, axis2=2) > 0).any())
 
 
 def _pair_labels(offsets: Sequence[TileOffset]) -> dict[str, np.ndarray]:

@@ -598,14 +598,16 @@ def window_ties(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np
 
 def windows_with_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray,
                        b_time: np.ndarray, half: float = 0.5) -> dict[str, list]:
-    """Every window's own offset (``d``, used by the curve or not) and when each run measured it
-    (``time_a``, ``time_b``: median times within ``half`` metres along the track), for JSON.
+    """Every window's own offset (``d``, used by the curve or not), when each run measured it
+    (``time_a``, ``time_b``: median times within ``half`` metres along the track), and whether the
+    curve used it along the track (``along``: its profile found the offset there), for JSON.
 
     What an ``ambiguous`` or ``degenerate`` pair still says across the track and up, window by
     window: its one offset, at its reference point, hides an offset that changes within the
     tile (a GNSS bias ramping in at a portal, :func:`railtraj.matching.resolve._ramped`)."""
     time_a, time_b, ok = _window_times(fit, a_xyz, a_time, b_xyz, b_time, fit.windows[:, 0], half)
-    return {"time_a": time_a[ok].tolist(), "time_b": time_b[ok].tolist(), "d": fit.windows[ok, 1:4].tolist()}
+    return {"time_a": time_a[ok].tolist(), "time_b": time_b[ok].tolist(), "d": fit.windows[ok, 1:4].tolist(),
+            "along": (fit.windows[ok, 4] > 0).tolist()}
 
 
 def _window_times(fit: Piecewise, a_xyz: np.ndarray, a_time: np.ndarray, b_xyz: np.ndarray, b_time: np.ndarray,

@@ -100,12 +100,20 @@ def test_a_pair_moved_to_another_alias_is_observed_where_run_a_saw_run_bs_struct
     aliases = {2: 3.0, 4: -1.5, 7: -3.0}
     offsets, trajs, s = _chain(aliases, statuses={0: "ok", 3: "ok", 6: "ok"})
     t0 = trajs["run_a"].time[0]
-    offsets = [replace(o, info=dict(o.info, time_a=t0 + (s_k + aliases.get(k, 0.0)) / 10.0))
-               for k, (o, s_k) in enumerate(zip(offsets, s, strict=True))]
+    # each pair's windows (the adjustment may read them, railtraj.adjust.offsets.resolved_by_window)
+    # at 5 m either side of its reference point, on the matcher's alias as the pair is
+    ahead = np.array([-5.0, 0.0, 5.0])
+    offsets = [replace(o, info=dict(o.info, time_a=t0 + (s_k + aliases.get(k, 0.0)) / 10.0, weak_windows={
+        "time_a": (t0 + (s_k + aliases.get(k, 0.0) + ahead) / 10.0).tolist(), "time_b": [o.info["time_b"]] * 3,
+        "d": [o.d.tolist()] * 3, "along": [True] * 3}))
+        for k, (o, s_k) in enumerate(zip(offsets, s, strict=True))]
     out, _ = resolve_along_track(offsets, trajs, AlongTrackOptions())
     for k in aliases:
         assert out[k].status == "coarse"
         assert out[k].info["time_a"] == pytest.approx(t0 + s[k] / 10.0, abs=0.01)
+        windows = out[k].info["weak_windows"]  # moved with the pair
+        np.testing.assert_allclose(windows["time_a"], t0 + (s[k] + ahead) / 10.0, atol=0.01)
+        np.testing.assert_allclose(windows["d"], [out[k].d] * 3, atol=1e-9)
 
 
 def test_an_ok_pair_on_an_alias_is_never_kept():

@@ -447,3 +447,47 @@ def test_the_other_runs_pairs_are_matched_where_a_biased_reference_anchors_littl
     survey = SimpleNamespace(runs=dict.fromkeys(runs))
     assert _reference_unresolved(coverage, checked, survey, PipelineOptions()) == matched
     assert _reference_unresolved(coverage, checked, survey, PipelineOptions(other_pairs_below=0.0)) == {}
+
+
+def _pairs_fixed_by_the_chain(trajs: dict[str, Trajectory], window: float = 5.0) -> list[TileOffset]:
+    """Every run pair's 25 m tile pairs as the along-track chain leaves them once it fixed them
+    (``coarse``, no ties): one offset at the tile's middle window, and each 5 m window's own
+    offset with the times the runs measured it (``weak_windows``)."""
+    runs, offsets = sorted(trajs), []
+    for i, a in enumerate(runs):
+        for b in runs[i + 1:]:
+            for start in np.arange(0.0, LENGTH, 25.0):
+                s = np.arange(start + window / 2, start + 25.0, window)
+                t_a, t_b = T0[a] + s / SPEED, T0[b] + s / SPEED
+                d = trajs[a].position_at(t_a) - trajs[b].position_at(t_b)
+                mid = len(s) // 2
+                info = {"time_a": float(t_a[mid]), "time_b": float(t_b[mid]), "piecewise": {"axis": [1.0, 0.0, 0.0]},
+                        "weak_windows": {"time_a": t_a.tolist(), "time_b": t_b.tolist(), "d": d.tolist(),
+                                         "along": [True] * len(s)}}
+                offsets.append(TileOffset(a, b, f"{start:.0f}", f"{start:.0f}", d[mid], np.eye(3) * 1e-4, len(s),
+                                          "coarse", Ties.empty(a, b), info))
+    return offsets
+
+
+def test_where_a_run_was_widened_its_fixed_pairs_place_the_bias_window_by_window():
+    """A multipath bias peaks at the portal within a tile or two. Where the check widened the
+    biased run its GNSS no longer holds it, and a pair fixed by the chain (no ties) gave the
+    adjustment one offset per 25 m: between them the correction is a smooth bridge that misses
+    the peak. Read window by window there, the pairs place the peak itself."""
+    trajs = {r: _run(r, T0[r], r == "run_a") for r in ("run_a", "run_b", "run_c")}
+    offsets = _pairs_fixed_by_the_chain(trajs)
+    checked = check_reported_sd(trajs, offsets)
+    assert set(checked.summary["runs"]) == {"run_a"}
+    worst = {}
+    for by_window in (False, True):
+        optimizer = SplineOptimizer(windows_where_widened=by_window)
+        corrected = optimizer.optimize(trajs, [], offsets, widening=checked.widening)
+        s = _chainage(trajs["run_a"])
+        zone = (s > TRAP[0]) & (s < TRAP[1])
+        worst[by_window] = float(np.abs(corrected["run_a"].xyz[zone, 1] - 180000.0).max())
+        if by_window:  # only the pairs of the widened stretch, each of its five windows
+            read = optimizer.diagnostics["by_window"]
+            assert 0 < read["pairs"] < len(offsets) and read["windows"] == 5 * read["pairs"]
+        else:
+            assert "by_window" not in optimizer.diagnostics
+    assert worst[True] < 0.01 and worst[False] > 2 * worst[True], worst
