@@ -191,7 +191,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         summary["vote"] = _vote_summary(obs, vote, d, outvoted, vote_margin, options)
         log.warning(summary["vote"]["note"])
         summary["notes"].append(summary["vote"]["note"])
-    freed = [_widened_at(w, trajectories, obs.run_a, obs.time_a) | _widened_at(w, trajectories, obs.run_b, obs.time_b)
+    freed = [widened_at(w, trajectories, obs.run_a, obs.time_a) | widened_at(w, trajectories, obs.run_b, obs.time_b)
              for w in (widening, widened or {})]
     # after the chains only: before them a portal's pairs are mostly weak, and the runs that agree
     # there do not show it (held-out 4902: the reference was blamed with the biased run)
@@ -265,7 +265,7 @@ def _of_run(obs: _Observations, mask: np.ndarray, run: str, d: np.ndarray) -> tu
     return np.concatenate([obs.time_a[as_a], obs.time_b[as_b]]), np.concatenate([d[as_a], d[as_b]])
 
 
-def _widened_at(widening: dict[str, np.ndarray], trajectories: dict[str, Trajectory], runs: np.ndarray,
+def widened_at(widening: dict[str, np.ndarray], trajectories: dict[str, Trajectory], runs: np.ndarray,
                 times: np.ndarray) -> np.ndarray:
     """Whether each observation's run (``runs``) is widened (``widening``, per run) at its time."""
     out = np.zeros(len(runs), bool)

@@ -51,8 +51,7 @@ def by_window(o: TileOffset) -> list[TileOffset]:
     windows = o.info.get("weak_windows") if o.status in WEAK_STATUSES else None
     if not windows or not len(windows["d"]):
         return [o]
-    return [replace(o, d=np.asarray(d, float), info=dict(o.info, time_a=t_a, time_b=t_b))
-            for d, t_a, t_b in zip(windows["d"], windows["time_a"], windows["time_b"], strict=True)]
+    return _per_window(o, windows, [o.cov] * len(windows["d"]))
 
 
 def resolved_by_window(o: TileOffset) -> list[TileOffset]:
@@ -71,12 +70,16 @@ def resolved_by_window(o: TileOffset) -> list[TileOffset]:
     ties = o.ties is not None and len(o.ties)
     if o.status not in ("ok", COARSE) or ties or not windows or len(windows["d"]) < 2 or "along" not in windows:
         return [o]
-    axis = _track_axis(o)
     cov = np.asarray(o.cov, float) * len(windows["d"])
-    return [replace(o, d=np.asarray(d, float), cov=cov if along else cov + WEAK_ALONG_SD_M**2 * np.outer(axis, axis),
-                    info=dict(o.info, time_a=t_a, time_b=t_b))
-            for d, t_a, t_b, along in zip(windows["d"], windows["time_a"], windows["time_b"], windows["along"],
-                                          strict=True)]
+    unseen_along = WEAK_ALONG_SD_M**2 * np.outer(_track_axis(o), _track_axis(o))
+    return _per_window(o, windows, [cov if along else cov + unseen_along for along in windows["along"]])
+
+
+def _per_window(o: TileOffset, windows: dict, covs: list[np.ndarray]) -> list[TileOffset]:
+    """The pair as one offset per window (``windows``: each one's ``d`` and the times the runs
+    measured it), with ``covs`` one covariance per window."""
+    return [replace(o, d=np.asarray(d, float), cov=cov, info=dict(o.info, time_a=t_a, time_b=t_b))
+            for d, t_a, t_b, cov in zip(windows["d"], windows["time_a"], windows["time_b"], covs, strict=True)]
 
 
 def usable_offset(o: TileOffset, trajectories: dict[str, Trajectory]) -> bool:

@@ -33,7 +33,7 @@ from railtraj.adjust.solve import solve
 from railtraj.adjust.stiffness import bend_density, stretches
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
-from railtraj.sd_check import covariance_at, widened_sd
+from railtraj.sd_check import covariance_at, widened_at, widened_sd
 
 log = logging.getLogger(__name__)
 
@@ -277,21 +277,14 @@ def _by_window_where_widened(offsets: Sequence[TileOffset], trajectories: dict[s
     out, pairs, windows = [], 0, 0
     for o in offsets:  # tile pairs: tens to hundreds, a handful of windows each
         parts = resolved_by_window(o)
-        if len(parts) > 1 and any(_widened_at(widening.get(run), trajectories.get(run),
-                                              np.array([p.info[key] for p in parts], float))
-                                  for run, key in ((o.run_a, "time_a"), (o.run_b, "time_b"))):
+        runs = np.array([o.run_a] * len(parts) + [o.run_b] * len(parts))
+        times = np.array([p.info["time_a"] for p in parts] + [p.info["time_b"] for p in parts], float)
+        if len(parts) > 1 and widened_at(widening, trajectories, runs, times).any():
             out += parts
             pairs, windows = pairs + 1, windows + len(parts)
         else:
             out.append(o)
     return out, ({"pairs": pairs, "windows": windows} if pairs else {})
-
-
-def _widened_at(widening: np.ndarray | None, traj: Trajectory | None, times: np.ndarray) -> bool:
-    """Whether the run's sd was widened at any of ``times``."""
-    if widening is None or traj is None:
-        return False
-    return bool((np.trace(covariance_at(times, traj.time, widening), axis1=1, axis2=2) > 0).any())
 
 
 def _pair_labels(offsets: Sequence[TileOffset]) -> dict[str, np.ndarray]:

@@ -186,7 +186,7 @@ LARGE_TILE = 1.2
 
 
 def in_parts(pairs: list[TilePair], part_m: float) -> list[TilePair]:
-    """``pairs`` with every overlap longer than ``1.2 part_m`` in x or y cut into equal parts of
+    """``pairs`` with every overlap longer than :data:`LARGE_TILE` ``part_m`` in x or y cut into equal parts of
     at most ``part_m`` (the same tiles, a smaller overlap box each); ``part_m`` 0: unchanged.
 
     A tile pair's offset is fitted as one smooth curve over 5 m windows, and its along-track alias
