@@ -64,6 +64,7 @@ class SplineConfig:
     min_sd_m: float = 0.005            # floor on the reported sd
     max_gap: float = 10.0              # knots without any observation before a stretch is reported
     weak_span_sd_m: float = 0.05       # ... when the trajectory's own sd there exceeds this
+    refuted_claim_ratio: float = 2.0   # a correction beyond this many claimed sd refutes the claim: report at least |correction| / this (0: off)
 
 
 class SplineOptimizer:
@@ -104,9 +105,10 @@ class SplineOptimizer:
                 claimed[r] = widened_sd(claimed[r], widening[r])
             # the priors are weakened to count a correlated error once per prior_correlation, so
             # their posterior sd overstates it where the input was already good (portals: 3.4 cm
-            # for GNSS at 1.5 cm); information only ever narrows it, so never report more
+            # for GNSS at 1.5 cm); information only ever narrows it, so never report more than
+            # the claim, unless the correction itself refutes the claim
             if traj.sd is not None:
-                sd = np.minimum(sd, claimed[r])
+                sd = np.minimum(sd, self._claim_not_refuted(claimed[r], corr))
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
@@ -121,6 +123,14 @@ class SplineOptimizer:
                  model.n_knots, ", ".join(f"{b.kind} {len(b)}" for b in data), sol.iterations,
                  time.perf_counter() - t0)
         return out
+
+    def _claim_not_refuted(self, claimed: np.ndarray, correction: np.ndarray) -> np.ndarray:
+        """The claimed sd, raised per axis to |correction| / ``refuted_claim_ratio`` where the
+        correction moved the run by more than that many claimed sd: such a claim was wrong there
+        (or the correction is), so it cannot bound the posterior (a short portal survey's free
+        start moved 1.05 m under a claimed 0.29 m)."""
+        ratio = self.config.refuted_claim_ratio
+        return claimed if ratio <= 0 else np.maximum(claimed, np.abs(correction) / ratio)
 
     def _model_blocks(self, model: CorrectionModel, run_id: str, traj: Trajectory,
                       widening: np.ndarray | None = None) -> list[obs.Block]:

@@ -284,3 +284,35 @@ def test_a_wrong_weak_pair_where_gnss_is_good_does_not_pull_the_runs_apart():
         apart[label] = float(np.abs(_inter_run_error(out, a, b, s)[:, 1]).max())
     assert apart["per knot"] < 0.01 and apart["as drift"] > 2 * apart["per knot"], apart
 
+
+
+def test_where_the_correction_refutes_the_claimed_sd_the_reported_sd_covers_it():
+    """A run reports 0.2 m over its first 40 m (a widened claim), where nothing observes it; from
+    80 m on it drifts 2 cm a metre against a GNSS-held run. The correction carries that rate back
+    to the start, 0.74 m, where the input was right. Capped at the claim (information only
+    narrows it) the reported sd says 0.2 m there: 3.7 sd. A correction beyond two claimed sd
+    refutes the claim; the reported sd is then at least half the correction (or the posterior)."""
+    time = 300000.0 + np.arange(0.0, LENGTH / 10.0, 0.05)
+    s = (time - time[0]) * 10.0
+    true = np.column_stack([530000 + s, np.full_like(s, 180000.0), np.full_like(s, 10.0)])
+    rpy = np.tile([0.0, 0.0, 90.0], (len(s), 1))
+    drift = np.column_stack([np.zeros_like(s), 0.02 * np.clip(s - 40.0, 0.0, None), np.zeros_like(s)])
+    sd_a = np.where(s[:, None] < 40.0, 0.2, 0.015 + 0.02 * (s[:, None] - 40.0)) * [1.0, 1.0, 0.2]
+    trajs = {"run_a": Trajectory(time, true + drift, rpy, sd_a, run_id="run_a"),
+             "run_b": Trajectory(time + 600.0, true, rpy, np.full((len(s), 3), 0.015), run_id="run_b")}
+    ties = []
+    for s0 in np.arange(80.0, LENGTH - 25.0, 25.0):
+        at = np.linspace(s0, s0 + 20.0, 10)
+        i = np.searchsorted(s, at)
+        ties.append(Ties("run_a", "run_b", time[i], time[i] + 600.0, true[i] + drift[i], true[i],
+                         np.full(len(i), 0.1)))
+    out = {ratio: registry().create("optimizer", "spline", {"refuted_claim_ratio": ratio})
+           .optimize(trajs, Ties.concat(ties), [])["run_a"] for ratio in (0.0, 2.0)}
+    start = s < 10.0
+    error = np.abs(out[2.0].xyz[start, 1] - 180000.0)
+    assert error.max() > 0.5 and np.allclose(out[0.0].xyz, out[2.0].xyz)
+    z = {ratio: float((error / o.sd[start, 1]).max()) for ratio, o in out.items()}
+    assert z[0.0] > 3.0 and z[2.0] < 3.0, z
+    # where the correction stayed within the claim nothing changed
+    refuted = np.any(np.abs(out[0.0].xyz - trajs["run_a"].xyz) > 2.0 * sd_a, axis=1)
+    assert np.allclose(out[0.0].sd[~refuted], out[2.0].sd[~refuted]) and refuted.mean() < 0.3
