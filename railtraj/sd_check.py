@@ -168,7 +168,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
         widening[run] = extra
         out[run] = traj.with_positions(traj.xyz, widened_sd(traj.sd, extra))
         changed = np.any(track_sd > 0, axis=1)
-        spans = _spans(traj.time, changed)
+        spans = time_spans(traj.time, changed)
         worst = float(np.linalg.norm(seen, axis=1).max())
         claimed = float(np.median(np.linalg.norm(traj.sd[changed][:, :2], axis=1)))
         others = sorted(set(np.where(obs.run_a == run, obs.run_b, obs.run_a)[blamed]))
@@ -176,7 +176,7 @@ def check_reported_sd(trajectories: dict[str, Trajectory], offsets: Sequence[Til
                                 "reported_sd_m": claimed, "against": others,
                                 "widened_sd_m": dict(zip(("along", "across", "up"), track_sd.max(axis=0).tolist(),
                                                          strict=True))}
-        note = (f"run {run}: its reported sd understates its error at {_fmt(spans)}: run(s) {', '.join(others)} "
+        note = (f"run {run}: its reported sd understates its error at {format_spans(spans)}: run(s) {', '.join(others)} "
                 f"disagree with it by up to {worst:.2f} m where it reports {claimed:.3f} m (horizontal sd); its sd was "
                 f"widened there, so the adjustment follows the runs that agree")
         log.warning(note)
@@ -627,12 +627,14 @@ def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> di
     return out
 
 
-def _spans(time: np.ndarray, flag: np.ndarray) -> list[list[float]]:
+def time_spans(time: np.ndarray, flag: np.ndarray) -> list[list[float]]:
+    """[first, last] time of each run of consecutive flagged epochs."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], flag.astype(np.int8), [0]])))
     return [[float(time[s]), float(time[e - 1])] for s, e in zip(edges[::2], edges[1::2], strict=True)]
 
 
-def _fmt(spans: list[list[float]]) -> str:
+def format_spans(spans: list[list[float]]) -> str:
+    """Time spans for a log line: the first five, and how many more."""
     return ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in spans[:5]) + (f" and {len(spans) - 5} more" if len(spans) > 5 else "")
 
 

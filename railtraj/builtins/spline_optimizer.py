@@ -33,7 +33,7 @@ from railtraj.adjust.solve import solve
 from railtraj.adjust.stiffness import bend_density, stretches
 from railtraj.data import ControlObservations, Ties, TileOffset, Trajectory
 from railtraj.hookspecs import hookimpl
-from railtraj.sd_check import covariance_at, widened_at, widened_sd
+from railtraj.sd_check import covariance_at, format_spans, time_spans, widened_at, widened_sd
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class SplineOptimizer:
             return dict(trajectories)
         sol = solve(blocks + data, model.n_unknowns, confidence=cfg.robust_confidence)
         cov_blocks = sol.banded.covariance_blocks()
-        out, spans, claimed = {}, [], {}
+        out, spans, claimed, refuted = {}, [], {}, {}
         for r in sorted(trajectories):
             traj = trajectories[r]
             corr, sd = _evaluate(model, r, traj.time, sol, cov_blocks)
@@ -108,13 +108,19 @@ class SplineOptimizer:
             # for GNSS at 1.5 cm); information only ever narrows it, so never report more than
             # the claim, unless the correction itself refutes the claim
             if traj.sd is not None:
-                sd = np.minimum(sd, self._claim_not_refuted(claimed[r], corr))
+                cap = self._claim_not_refuted(claimed[r], corr)
+                sd = np.minimum(sd, cap)
+                if (cap > claimed[r]).any():
+                    refuted[r] = _refuted_claim(r, traj.time, corr, claimed[r], cap > claimed[r])
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
         self.diagnostics["bend_raised"] = self._bends
         if by_window:
             self.diagnostics["by_window"] = by_window
+        if refuted:  # metrics.json: adjustment.claim_refuted, and a note per run
+            self.diagnostics["claim_refuted"] = refuted
+            self.diagnostics["notes"] += [found["note"] for found in refuted.values()]
         with_control = any(b.kind == "control" and len(b) for b in data)
         if cfg.recentre and not with_control:
             out, shift = recentre(trajectories, out, claimed)
@@ -272,6 +278,23 @@ class SplineOptimizer:
                 "observations": counts, "rejected": rejected, "gnc_iterations": sol.iterations,
                 "bandwidth": sol.banded.bandwidth, "under_constrained": spans, "seconds": round(seconds, 3),
                 "notes": []}
+
+
+def _refuted_claim(run_id: str, time_s: np.ndarray, correction: np.ndarray, claimed: np.ndarray, lifted: np.ndarray) -> dict:
+    """Where a run's correction refuted its claimed sd (``lifted``: epochs, axes), for
+    metrics.json, with a warning and a note: the SBET's sd (or the sd check's widening)
+    understates its error there, or the correction is wrong there; control would tell which."""
+    ratio = np.where(lifted, np.abs(correction) / np.maximum(claimed, 1e-9), 0.0)
+    i, k = np.unravel_index(np.argmax(ratio), ratio.shape)
+    at = lifted.any(axis=1)
+    found = {"epochs": int(at.sum()), "spans_s": time_spans(time_s, at), "worst_correction_m": float(abs(correction[i, k])),
+             "claimed_sd_m": float(claimed[i, k]), "axis": "xyz"[k], "time_s": float(time_s[i])}
+    found["note"] = (f"run {run_id}: the correction moved it {found['worst_correction_m']:.3f} m ({found['axis']}) at "
+                     f"{found['time_s']:.1f} s, {ratio[i, k]:.1f} times the {found['claimed_sd_m']:.3f} m its sd claims; "
+                     f"that claim is refuted at {format_spans(found['spans_s'])}, where its corrected sd is at least half "
+                     "the correction (adjustment.claim_refuted)")
+    log.warning(found["note"])
+    return found
 
 
 def _by_window_where_widened(offsets: Sequence[TileOffset], trajectories: dict[str, Trajectory],

@@ -306,8 +306,11 @@ def test_where_the_correction_refutes_the_claimed_sd_the_reported_sd_covers_it()
         i = np.searchsorted(s, at)
         ties.append(Ties("run_a", "run_b", time[i], time[i] + 600.0, true[i] + drift[i], true[i],
                          np.full(len(i), 0.1)))
-    out = {ratio: registry().create("optimizer", "spline", {"refuted_claim_ratio": ratio})
-           .optimize(trajs, Ties.concat(ties), [])["run_a"] for ratio in (0.0, 2.0)}
+    out, found = {}, {}
+    for ratio in (0.0, 2.0):
+        optimizer = registry().create("optimizer", "spline", {"refuted_claim_ratio": ratio})
+        out[ratio] = optimizer.optimize(trajs, Ties.concat(ties), [])["run_a"]
+        found[ratio] = optimizer.diagnostics.get("claim_refuted", {})
     start = s < 10.0
     error = np.abs(out[2.0].xyz[start, 1] - 180000.0)
     assert error.max() > 0.5 and np.allclose(out[0.0].xyz, out[2.0].xyz)
@@ -316,3 +319,7 @@ def test_where_the_correction_refutes_the_claimed_sd_the_reported_sd_covers_it()
     # where the correction stayed within the claim nothing changed
     refuted = np.any(np.abs(out[0.0].xyz - trajs["run_a"].xyz) > 2.0 * sd_a, axis=1)
     assert np.allclose(out[0.0].sd[~refuted], out[2.0].sd[~refuted]) and refuted.mean() < 0.3
+    # ... and metrics.json says where the claim was refuted, and for which run
+    assert not found[0.0] and set(found[2.0]) == {"run_a"}
+    spans = np.array(found[2.0]["run_a"]["spans_s"]) - time[0]
+    assert spans.min() < 1.0 and spans.max() * 10.0 < 80.0, spans  # seconds at 10 m/s: before the ties
