@@ -320,6 +320,6 @@ def test_where_the_correction_refutes_the_claimed_sd_the_reported_sd_covers_it()
     refuted = np.any(np.abs(out[0.0].xyz - trajs["run_a"].xyz) > 2.0 * sd_a, axis=1)
     assert np.allclose(out[0.0].sd[~refuted], out[2.0].sd[~refuted]) and refuted.mean() < 0.3
     # ... and metrics.json says where the claim was refuted, and for which run
-    assert not found[0.0] and set(found[2.0]) == {"run_a"}
+    assert not found[0.0] and set(found[2.0]) == {"run_a"} and found[2.0]["run_a"]["warned"]
     spans = np.array(found[2.0]["run_a"]["spans_s"]) - time[0]
     assert spans.min() < 1.0 and spans.max() * 10.0 < 80.0, spans  # seconds at 10 m/s: before the ties
