@@ -64,7 +64,8 @@ class SplineConfig:
     min_sd_m: float = 0.005            # floor on the reported sd
     max_gap: float = 10.0              # knots without any observation before a stretch is reported
     weak_span_sd_m: float = 0.05       # ... when the trajectory's own sd there exceeds this
-    refuted_claim_ratio: float = 2.0   # a correction beyond this many claimed sd refutes the claim: report at least |correction| / this (0: off)
+    # a correction beyond this many claimed sd refutes the claim: the sd is then >= |correction| / this (0: off)
+    refuted_claim_ratio: float = 2.0
 
 
 class SplineOptimizer:
@@ -280,7 +281,8 @@ class SplineOptimizer:
                 "notes": []}
 
 
-def _refuted_claim(run_id: str, time_s: np.ndarray, correction: np.ndarray, claimed: np.ndarray, lifted: np.ndarray) -> dict:
+def _refuted_claim(run_id: str, time_s: np.ndarray, correction: np.ndarray, claimed: np.ndarray,
+                   lifted: np.ndarray) -> dict:
     """Where a run's correction refuted its claimed sd (``lifted``: epochs, axes), for
     metrics.json, logged, and where it exceeded three claimed sd a warning and a note: the SBET's
     sd (or the sd check's widening) understates its error there, or the correction is wrong
@@ -288,12 +290,13 @@ def _refuted_claim(run_id: str, time_s: np.ndarray, correction: np.ndarray, clai
     ratio = np.where(lifted, np.abs(correction) / np.maximum(claimed, 1e-9), 0.0)
     i, k = np.unravel_index(np.argmax(ratio), ratio.shape)
     at = lifted.any(axis=1)
-    found = {"epochs": int(at.sum()), "spans_s": time_spans(time_s, at), "worst_correction_m": float(abs(correction[i, k])),
-             "claimed_sd_m": float(claimed[i, k]), "axis": "xyz"[k], "time_s": float(time_s[i])}
-    found["note"] = (f"run {run_id}: the correction moved it {found['worst_correction_m']:.3f} m ({found['axis']}) at "
-                     f"{found['time_s']:.1f} s, {ratio[i, k]:.1f} times the {found['claimed_sd_m']:.3f} m its sd claims; "
-                     f"that claim is refuted at {format_spans(found['spans_s'])}, where its corrected sd is at least half "
-                     "the correction (adjustment.claim_refuted)")
+    found = {"epochs": int(at.sum()), "spans_s": time_spans(time_s, at),
+             "worst_correction_m": float(abs(correction[i, k])), "claimed_sd_m": float(claimed[i, k]),
+             "axis": "xyz"[k], "time_s": float(time_s[i])}
+    found["note"] = (f"run {run_id}: the correction moved it {found['worst_correction_m']:.3f} m ({found['axis']}) "
+                     f"at {found['time_s']:.1f} s, {ratio[i, k]:.1f} times the {found['claimed_sd_m']:.3f} m its "
+                     f"sd claims; that claim is refuted at {format_spans(found['spans_s'])}, where its corrected "
+                     "sd is at least half the correction (adjustment.claim_refuted)")
     # beyond 3 claimed sd no honest sd would have allowed it: a warning; between 2 and 3, information
     found["warned"] = bool(ratio[i, k] > 3.0)
     log.log(logging.WARNING if found["warned"] else logging.INFO, found["note"])

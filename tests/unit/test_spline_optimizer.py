@@ -285,7 +285,6 @@ def test_a_wrong_weak_pair_where_gnss_is_good_does_not_pull_the_runs_apart():
     assert apart["per knot"] < 0.01 and apart["as drift"] > 2 * apart["per knot"], apart
 
 
-
 def test_where_the_correction_refutes_the_claimed_sd_the_reported_sd_covers_it():
     """A run reports 0.2 m over its first 40 m (a widened claim), where nothing observes it; from
     80 m on it drifts 2 cm a metre against a GNSS-held run. The correction carries that rate back
