@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from railtraj.adjust.offsets import WEAK_STATUSES, by_window, offset_covariance, usable_offset
+from railtraj.adjust.stiffness import stretches
 from railtraj.data import TileOffset, Trajectory, reports_gnss
 from railtraj.geo import track_frames
 
@@ -266,7 +267,7 @@ def _of_run(obs: _Observations, mask: np.ndarray, run: str, d: np.ndarray) -> tu
 
 
 def widened_at(widening: dict[str, np.ndarray], trajectories: dict[str, Trajectory], runs: np.ndarray,
-                times: np.ndarray) -> np.ndarray:
+               times: np.ndarray) -> np.ndarray:
     """Whether each observation's run (``runs``) is widened (``widening``, per run) at its time."""
     out = np.zeros(len(runs), bool)
     for run, extra in widening.items():
@@ -629,8 +630,7 @@ def with_fading_margin(corrected: dict[str, Trajectory], checked: SdCheck) -> di
 
 def time_spans(time: np.ndarray, flag: np.ndarray) -> list[list[float]]:
     """[first, last] time of each run of consecutive flagged epochs."""
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], flag.astype(np.int8), [0]])))
-    return [[float(time[s]), float(time[e - 1])] for s, e in zip(edges[::2], edges[1::2], strict=True)]
+    return [[float(time[a]), float(time[b])] for a, b in stretches(flag)]
 
 
 def format_spans(spans: list[list[float]]) -> str:

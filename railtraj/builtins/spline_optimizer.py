@@ -110,9 +110,9 @@ class SplineOptimizer:
             # the claim, unless the correction itself refutes the claim
             if traj.sd is not None:
                 cap = self._claim_not_refuted(claimed[r], corr)
-                sd = np.minimum(sd, cap)
-                if (cap > claimed[r]).any():
-                    refuted[r] = _refuted_claim(r, traj.time, corr, claimed[r], cap > claimed[r])
+                sd, lifted = np.minimum(sd, cap), cap > claimed[r]
+                if lifted.any():
+                    refuted[r] = _refuted_claim(r, traj.time, corr, claimed[r], lifted)
             out[r] = traj.with_positions(traj.xyz + corr, np.maximum(sd, 1e-6))
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
@@ -316,14 +316,21 @@ def _by_window_where_widened(offsets: Sequence[TileOffset], trajectories: dict[s
     out, pairs, windows = [], 0, 0
     for o in offsets:  # tile pairs: tens to hundreds, a handful of windows each
         parts = resolved_by_window(o)
-        runs = np.array([o.run_a] * len(parts) + [o.run_b] * len(parts))
-        times = np.array([p.info["time_a"] for p in parts] + [p.info["time_b"] for p in parts], float)
-        if len(parts) > 1 and widened_at(widening, trajectories, runs, times).any():
+        if len(parts) > 1 and _widened_at_any(parts, widening, trajectories):
             out += parts
             pairs, windows = pairs + 1, windows + len(parts)
         else:
             out.append(o)
     return out, ({"pairs": pairs, "windows": windows} if pairs else {})
+
+
+def _widened_at_any(parts: list[TileOffset], widening: dict[str, np.ndarray],
+                    trajectories: dict[str, Trajectory]) -> bool:
+    """Whether either run of a pair's windows (``parts``) was widened where it measured any of them."""
+    o, n = parts[0], len(parts)
+    runs = np.array([o.run_a] * n + [o.run_b] * n)
+    times = np.array([p.info["time_a"] for p in parts] + [p.info["time_b"] for p in parts], float)
+    return bool(widened_at(widening, trajectories, runs, times).any())
 
 
 def _pair_labels(offsets: Sequence[TileOffset]) -> dict[str, np.ndarray]:

@@ -186,8 +186,9 @@ LARGE_TILE = 1.2
 
 
 def in_parts(pairs: list[TilePair], part_m: float) -> list[TilePair]:
-    """``pairs`` with every overlap longer than :data:`LARGE_TILE` ``part_m`` in x or y cut into equal parts of
-    at most ``part_m`` (the same tiles, a smaller overlap box each); ``part_m`` 0: unchanged.
+    """``pairs`` with every overlap longer than :data:`LARGE_TILE` x ``part_m`` in x or y cut into
+    equal parts of at most ``part_m`` (the same tiles, a smaller overlap box each); ``part_m`` 0:
+    unchanged.
 
     A tile pair's offset is fitted as one smooth curve over 5 m windows, and its along-track alias
     is chosen against the pairs around it. Tiles of 50 m hold up to 70 m of track, over which the
