@@ -14,7 +14,9 @@ Knots are spaced in metres travelled (``unit="m"``, the default) or in seconds (
 * seconds for surveys where the train stands for long (the correction still changes with time
   while the distance stands still); the smoothness is scaled by time in both cases.
 
-Unknowns are numbered ``3 * knot + axis``, knots of all runs concatenated in run-name order.
+Unknowns are numbered ``3 * knot + axis``, knots of all runs concatenated in run-name order,
+then the knots of the runs' GNSS biases (:mod:`railtraj.adjust.gnss_bias`), one per correction
+knot of each run ``biased``.
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ class RunKnots:
 class CorrectionModel:
     """Knot layout of every run and the interpolation weights of observations on it."""
 
-    def __init__(self, trajectories: dict[str, Trajectory], spacing: float = 5.0, unit: str = "m") -> None:
+    def __init__(self, trajectories: dict[str, Trajectory], spacing: float = 5.0, unit: str = "m",
+                 biased: tuple[str, ...] = ()) -> None:
         if unit not in UNITS:
             raise ConfigError(f"optimizer knot_unit={unit!r} is not valid; use 'm' (metres travelled) or 's'")
         if not spacing > 0:
@@ -70,10 +73,15 @@ class CorrectionModel:
             self.runs[run_id] = RunKnots(first, self.spacing, param, traj.time, knot_time, knot_distance)
             first += n
         self.n_knots = first
+        self.bias_first: dict[str, int] = {}  # global index of a biased run's first bias knot
+        for run_id in sorted(biased):
+            self.bias_first[run_id] = first
+            first += self.runs[run_id].count
+        self.n_bias_knots = first - self.n_knots
 
     @property
     def n_unknowns(self) -> int:
-        return 3 * self.n_knots
+        return 3 * (self.n_knots + self.n_bias_knots)
 
     def weights(self, run_id: str, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global knot indices (n, 2) and linear interpolation weights (n, 2) at ``times``."""

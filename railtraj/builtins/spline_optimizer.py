@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from railtraj.adjust import observations as obs
+from railtraj.adjust.gnss_bias import bias_scale, gauss_markov, gnss_share, on_drift
 from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, resolved_by_window, usable_offset
 from railtraj.adjust.recentre import recentre
@@ -49,6 +50,10 @@ class SplineConfig:
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
     bend_from_reported_sd: bool = True  # per outage, raise that density until the model's prior reaches the run's sd
     max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor
+    # where the widened run's sd is GNSS-like, the widening is a bias state beside the drift,
+    # correlated over this many metres (0: freer drift there too, the treatment before session 55)
+    gnss_bias_correlation_m: float = 25.0
+    gnss_bias_sd_scale: float = 2.0    # the bias state's sd, in units of the sd check's widening
     recentre: bool = True              # without control: runs' common correction at their sd-weighted average
     tie_sigma_m: float = 0.01          # 1-sigma of one tie (a tile pair's ties weigh 1/n each), per axis
     offset_sd_floor_m: float = 0.005   # added in quadrature to a tile offset's sd
@@ -81,8 +86,9 @@ class SplineOptimizer:
         """Corrected trajectories. ``widening``: per run, a covariance (n_epochs, 3, 3) to add to
         its reported sd where :mod:`railtraj.sd_check` found that sd understated."""
         cfg, t0 = self.config, time.perf_counter()
-        model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit)
         widening = widening or {}
+        model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit,
+                                tuple(widening) if cfg.gnss_bias_correlation_m > 0 else ())
         self._bends: dict[str, list[dict]] = {}
         blocks = [b for r in sorted(trajectories)
                   for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
@@ -146,8 +152,8 @@ class SplineOptimizer:
         sd = traj.sd_at(times)
         sd = np.full((len(times), 3), cfg.default_sd_m) if sd is None else np.maximum(sd, cfg.min_sd_m)
         correlated = max(cfg.prior_correlation / cfg.knot_spacing, 1.0)
-        per_knot = correlated ** _drift_share(sd, cfg.gnss_sd_m, cfg.drift_sd_m)
-        prior_sd = sd * np.sqrt(per_knot)[:, None]
+        share = _drift_share(sd, cfg.gnss_sd_m, cfg.drift_sd_m)
+        prior_sd = sd * np.sqrt(correlated**share)[:, None]
         density = cfg.drift_curvature_sd
         if cfg.bend_from_reported_sd and model.runs[run_id].count >= 3:
             density, outages = bend_density(density, model.knot_metres(run_id), prior_sd, sd, cfg.gnss_sd_m)
@@ -157,15 +163,25 @@ class SplineOptimizer:
         if widening is None:
             return [obs.prior(model, run_id, prior_sd), obs.smoothness(model, run_id, density)]
         extra = covariance_at(times, traj.time, widening)
-        # where a GNSS bias widened it, the run's error is not the INS drift the smoothness models:
-        # it may bend more in the widened directions, as its sd grew there but at most
-        # max_bend_widening times (a freer bend let a wrong weak pair at a portal pull 0.8 m)
+        biased = cfg.gnss_bias_correlation_m > 0
+        if biased:  # the widening's share that is a GNSS bias gets its own state; the rest is drift's
+            gnss = gnss_share(1.0 - share, model.runs[run_id].knot_distance, cfg.gnss_bias_correlation_m)
+            gnss_bias, extra = gnss[:, None, None] * extra, share[:, None, None] * extra
+        # where it is the drift's (its sd understated), the run's error is not the INS drift the
+        # smoothness models either: it may bend more in the widened directions, as its sd grew
+        # there but at most max_bend_widening times (a freer bend let a wrong weak pair at a
+        # portal pull 0.8 m)
         relax = extra / np.mean(sd**2, axis=1)[:, None, None]
         room = (cfg.max_bend_widening**2 - 1.0) / np.maximum(np.trace(relax, axis1=1, axis2=2), 1e-12)
         relax = relax * np.minimum(1.0, room)[:, None, None]
-        # a GNSS bias found by the sd check spans tens of metres: counted once per correlation length
-        return [obs.prior(model, run_id, prior_sd, extra * correlated),
-                obs.smoothness(model, run_id, density, relax)]
+        # a disagreement found by the sd check spans tens of metres: counted once per correlation length
+        blocks = [obs.prior(model, run_id, prior_sd, extra * correlated),
+                  obs.smoothness(model, run_id, density, relax)]
+        if not biased:
+            return blocks
+        scale = cfg.gnss_bias_sd_scale * bias_scale(gnss_bias)
+        return [on_drift(b, model, run_id, scale) for b in blocks] + [
+            gauss_markov(model, run_id, cfg.gnss_bias_correlation_m)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]

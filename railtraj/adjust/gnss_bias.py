@@ -1,0 +1,77 @@
+"""A GNSS bias as its own state beside the drift: bounded, and fading back to zero along the track.
+
+Where :mod:`railtraj.sd_check` finds a run's GNSS biased (multipath or a float solution at a
+portal, while the SBET still claims 2 cm), the run's error is not the INS drift the smoothness
+models. GNSS/INS filters carry such an error as a first-order Gauss-Markov state: of known sd,
+correlated over a length, reverting to zero beyond it. So does the adjustment:
+
+    c_r(t) = d_r(t) + b_r(t),      b_r(knot) = S(knot) u(knot)
+
+``d`` is the drift (the run's prior at its reported sd and the smoothness act on ``d = c - b``),
+``u`` a unit first-order Gauss-Markov process along the track (``u_0 ~ N(0, I)``,
+``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), and ``S S^T`` the share of the
+covariance the sd check widened the run by (its disagreement with the other runs, in the track
+frame) that is GNSS's (:func:`gnss_share`). Ties and tile offsets see ``c`` alone: the bias knots
+enter only the run's own model rows.
+
+What it changes, against widening the prior and freeing the bend (the earlier treatment, kept
+where the run's sd is the smoother's drift): the drift stays held by the GNSS sd the run reports,
+so the correction can follow a bias that sets in within metres of a portal, and past the last
+observation of a freed run it no longer carries on at the rate the observations last saw (the
+smoothness extrapolates a drift linearly: at a survey's free end that put a run 7.5-21 cm off
+where its GNSS was right to 2 cm); the bias reverts towards zero over ``correlation_m`` and the
+corrected sd grows back to the bias' sd (docs/method.md, "Session 55").
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from railtraj.adjust.model import CorrectionModel
+from railtraj.adjust.observations import Block, assemble
+
+
+def gnss_share(gnss_like: np.ndarray, knot_distance: np.ndarray, correlation_m: float) -> np.ndarray:
+    """Per knot, the share (0-1) of a run's widening taken as a GNSS bias: ``gnss_like`` (1 where
+    its reported sd is GNSS's, 0 where it is the smoother's drift), carried into an outage and
+    fading over ``correlation_m``: a bias at the portal is where the smoother's bridge starts, so
+    it does not stop at the first knot without GNSS (cut there, the drift had to turn by the
+    whole bias within 5 m: 5-11 cm off on portal surveys)."""
+    apart = np.abs(knot_distance[:, None] - knot_distance[None, :])  # knots of one run: hundreds
+    return np.max(gnss_like[None, :] * np.exp(-apart / correlation_m), axis=1)
+
+
+def bias_scale(covariance: np.ndarray) -> np.ndarray:
+    """``S`` (n_knots, 3, 3) with ``S S^T`` = the bias' ``covariance`` (n_knots, 3, 3)."""
+    vals, vecs = np.linalg.eigh(covariance)
+    return vecs * np.sqrt(np.maximum(vals, 0.0))[:, None, :]
+
+
+def on_drift(block: Block, model: CorrectionModel, run_id: str, scale: np.ndarray) -> Block:
+    """``block``'s rows on the run's correction ``c`` turned into rows on its drift ``c - b``:
+    every coefficient ``a`` of ``c(knot)`` gains ``-a S(knot)`` on ``u(knot)``. ``scale``: ``S``
+    (n_knots, 3, 3) of the run."""
+    rk, first = model.runs[run_id], model.bias_first[run_id]
+    k = np.arange(rk.count)
+    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = (3 * (rk.first + k)[:, None, None] + i).ravel()
+    cols = (3 * (first + k)[:, None, None] + j).ravel()
+    to_bias = sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(model.n_unknowns, model.n_unknowns))
+    return replace(block, A=sp.csr_matrix(block.A - block.A @ to_bias), per_axis=None)
+
+
+def gauss_markov(model: CorrectionModel, run_id: str, correlation_m: float) -> Block:
+    """The unit bias process' own rows: ``u_0 = 0`` and ``u_{k+1} - phi_k u_k = 0`` with sd 1 and
+    ``sqrt(1 - phi_k^2)``, ``phi_k = exp(-h_k / correlation_m)`` over the ``h_k`` metres between
+    knots: stationary, of unit sd at every knot."""
+    first, count = model.bias_first[run_id], model.runs[run_id].count
+    phi = np.exp(-model.knot_metres(run_id) / correlation_m)
+    k = first + np.arange(count - 1)
+    knots = np.vstack([[first, first], np.column_stack([k, k + 1])])
+    w = np.vstack([[1.0, 0.0], np.column_stack([-phi, np.ones(count - 1)])])
+    sd = np.concatenate([[1.0], np.sqrt(np.maximum(1.0 - phi**2, 1e-12))])
+    whiten = np.einsum("n,ij->nij", 1.0 / sd, np.eye(3))
+    return assemble("gnss_bias", model.n_unknowns, knots, w, np.zeros((count, 3)), whiten, robust=False)
