@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from railtraj.adjust import observations as obs
-from railtraj.adjust.gnss_bias import bias_scale, gauss_markov, gnss_share, on_drift
+from railtraj.adjust.gnss_bias import bias_scale, estimated_bias, gauss_markov, gnss_share, on_drift
 from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, resolved_by_window, usable_offset
 from railtraj.adjust.recentre import recentre
@@ -90,6 +90,7 @@ class SplineOptimizer:
         model = CorrectionModel(trajectories, cfg.knot_spacing, cfg.knot_unit,
                                 tuple(widening) if cfg.gnss_bias_correlation_m > 0 else ())
         self._bends: dict[str, list[dict]] = {}
+        self._bias_scale: dict[str, np.ndarray] = {}
         blocks = [b for r in sorted(trajectories)
                   for b in self._model_blocks(model, r, trajectories[r], widening.get(r))]
         offsets, by_window = _by_window_where_widened(offsets, trajectories, widening, cfg.windows_where_widened)
@@ -123,6 +124,13 @@ class SplineOptimizer:
             spans += self._weak_spans(model, r, traj, data)
         self.diagnostics = self._report(blocks + data, sol, model, spans, time.perf_counter() - t0)
         self.diagnostics["bend_raised"] = self._bends
+        if self._bias_scale:  # metrics.json: adjustment.gnss_bias
+            self.diagnostics["gnss_bias"] = {r: estimated_bias(model, r, S, sol.x)
+                                             for r, S in self._bias_scale.items()}
+            for r, found in self.diagnostics["gnss_bias"].items():
+                log.info("run %s: GNSS bias found up to %s m (x, y, z) at %.1f s, above 2 cm over %.0f m "
+                         "(a Gauss-Markov state beside the drift; adjustment.gnss_bias)", r,
+                         ", ".join(f"{v:.3f}" for v in found["largest_m"]), found["time_s"], found["metres_above_2cm"])
         if by_window:
             self.diagnostics["by_window"] = by_window
         if refuted:  # metrics.json: adjustment.claim_refuted, and a note per run
@@ -179,7 +187,7 @@ class SplineOptimizer:
                   obs.smoothness(model, run_id, density, relax)]
         if not biased:
             return blocks
-        scale = cfg.gnss_bias_sd_scale * bias_scale(gnss_bias)
+        scale = self._bias_scale[run_id] = cfg.gnss_bias_sd_scale * bias_scale(gnss_bias)
         return [on_drift(b, model, run_id, scale) for b in blocks] + [
             gauss_markov(model, run_id, cfg.gnss_bias_correlation_m)]
 

@@ -356,6 +356,12 @@ def test_a_gnss_bias_at_a_portal_is_followed_where_seen_and_fades_past_the_last_
     for label, correlation in (("freer drift", 0.0), ("bias state", 25.0)):
         optimizer = registry().create("optimizer", "spline", {"gnss_bias_correlation_m": correlation})
         out[label] = optimizer.optimize(trajs, Ties.concat(ties), [], widening={"run_b": widened})["run_b"]
+    # metrics.json says where the bias was: run b's, near its 0.2 m peak just past the portal
+    found = optimizer.diagnostics["gnss_bias"]
+    assert set(found) == {"run_b"}, found
+    peak = found["run_b"]
+    assert peak["largest_m"][0] > 0.1 and 295.0 < (peak["time_s"] - time[0] - 600.0) * 10.0 < 325.0, peak
+    assert 10.0 < peak["metres_above_2cm"] < 70.0, peak
     error = {k: np.abs(o.xyz[:, 0] - true[:, 0]) for k, o in out.items()}
     seen = (s > 20.0) & (s < 315.0)
     worst = {k: float(e[seen].max()) for k, e in error.items()}
