@@ -11,7 +11,8 @@ correlated over a length, reverting to zero beyond it. So does the adjustment:
 ``u`` a unit first-order Gauss-Markov process along the track (``u_0 ~ N(0, I)``,
 ``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), and ``S S^T`` the share of the
 covariance the sd check widened the run by (its disagreement with the other runs, in the track
-frame) that is GNSS's (:func:`gnss_share`). Ties and tile offsets see ``c`` alone: the bias knots
+frame) that is GNSS's (:func:`gnss_share`), times ``gnss_bias_sd_scale``^2 (2: a prior of one
+disagreement's sd shaved a multipath peak by a centimetre). Ties and tile offsets see ``c`` alone: the bias knots
 enter only the run's own model rows.
 
 What it changes, against widening the prior and freeing the bend (the earlier treatment, kept
@@ -34,14 +35,19 @@ from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.observations import Block, assemble
 
 
-def gnss_share(gnss_like: np.ndarray, knot_distance: np.ndarray, correlation_m: float) -> np.ndarray:
+def gnss_share(gnss_like: np.ndarray, knot_distance: np.ndarray, correlation_m: float,
+               widened: np.ndarray) -> np.ndarray:
     """Per knot, the share (0-1) of a run's widening taken as a GNSS bias: ``gnss_like`` (1 where
     its reported sd is GNSS's, 0 where it is the smoother's drift), carried into an outage and
     fading over ``correlation_m``: a bias at the portal is where the smoother's bridge starts, so
     it does not stop at the first knot without GNSS (cut there, the drift had to turn by the
-    whole bias within 5 m: 5-11 cm off on portal surveys)."""
-    apart = np.abs(knot_distance[:, None] - knot_distance[None, :])  # knots of one run: hundreds
-    return np.max(gnss_like[None, :] * np.exp(-apart / correlation_m), axis=1)
+    whole bias within 5 m: 5-11 cm off on portal surveys). Computed at the ``widened`` knots only
+    (elsewhere 0): tens to hundreds of them against all the run's knots."""
+    share = np.zeros(len(gnss_like))
+    rows = np.flatnonzero(widened)
+    apart = np.abs(knot_distance[rows, None] - knot_distance[None, :])
+    share[rows] = np.max(gnss_like[None, :] * np.exp(-apart / correlation_m), axis=1, initial=0.0)
+    return share
 
 
 def bias_scale(covariance: np.ndarray) -> np.ndarray:

@@ -7,7 +7,9 @@ The thesis' g2o graph with fixed attitude, rebuilt so that it follows a drifting
    time through interpolation weights.
 2. **Observations** (:mod:`railtraj.adjust.observations`): priors from the trajectory's reported
    sd, second-difference smoothness from an INS error model, ties, weak tile offsets in their
-   constrained directions with their full covariance, control points as absolute observations.
+   constrained directions with their full covariance, control points as absolute observations;
+   where the sd check found a run's GNSS biased, a Gauss-Markov bias state beside the drift
+   (:mod:`railtraj.adjust.gnss_bias`).
 3. **Solve** (:mod:`railtraj.adjust.solve`): the problem is linear, so one sparse banded solve
    per robust iteration (GNC with truncated least squares on whitened residuals), and the
    posterior sd from the band of the inverse.
@@ -173,7 +175,8 @@ class SplineOptimizer:
         extra = covariance_at(times, traj.time, widening)
         biased = cfg.gnss_bias_correlation_m > 0
         if biased:  # the widening's share that is a GNSS bias gets its own state; the rest is drift's
-            gnss = gnss_share(1.0 - share, model.runs[run_id].knot_distance, cfg.gnss_bias_correlation_m)
+            gnss = gnss_share(1.0 - share, model.runs[run_id].knot_distance, cfg.gnss_bias_correlation_m,
+                              np.trace(extra, axis1=1, axis2=2) > 0)
             gnss_bias, extra = gnss[:, None, None] * extra, share[:, None, None] * extra
         # where it is the drift's (its sd understated), the run's error is not the INS drift the
         # smoothness models either: it may bend more in the widened directions, as its sd grew
