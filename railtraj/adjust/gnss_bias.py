@@ -9,7 +9,10 @@ correlated over a length, reverting to zero beyond it. So does the adjustment:
 
 ``d`` is the drift (the run's prior at its reported sd and the smoothness act on ``d = c - b``),
 ``u`` a unit first-order Gauss-Markov process along the track (``u_0 ~ N(0, I)``,
-``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), and ``S S^T`` the share of the
+``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), smooth as the freed drift is
+(``b``'s second differences at the drift's bend density times ``max_bend_widening``: a
+first-order process alone wandered between weak pairs, 3.7 -> 8.6 cm on the full-size mixed
+survey with a portal bias), and ``S S^T`` the share of the
 covariance the sd check widened the run by (its disagreement with the other runs, in the track
 frame) that is GNSS's (:func:`gnss_share`), times ``gnss_bias_sd_scale``^2 (2: a prior of one
 disagreement's sd shaved a multipath peak by a centimetre). Ties and tile offsets see ``c`` alone: the bias knots
@@ -60,13 +63,24 @@ def on_drift(block: Block, model: CorrectionModel, run_id: str, scale: np.ndarra
     """``block``'s rows on the run's correction ``c`` turned into rows on its drift ``c - b``:
     every coefficient ``a`` of ``c(knot)`` gains ``-a S(knot)`` on ``u(knot)``. ``scale``: ``S``
     (n_knots, 3, 3) of the run."""
+    return replace(block, A=sp.csr_matrix(block.A - block.A @ _to_bias(model, run_id, scale)), per_axis=None)
+
+
+def on_bias(block: Block, model: CorrectionModel, run_id: str, scale: np.ndarray) -> Block:
+    """``block``'s rows on the run's correction ``c`` moved onto its bias ``b = S u`` (a
+    smoothness of the bias itself)."""
+    return replace(block, A=sp.csr_matrix(block.A @ _to_bias(model, run_id, scale)), per_axis=None)
+
+
+def _to_bias(model: CorrectionModel, run_id: str, scale: np.ndarray) -> sp.csr_matrix:
+    """The map from a run's correction unknowns to its bias ``S u``: ``S(knot)`` at (correction
+    knot, bias knot)."""
     rk, first = model.runs[run_id], model.bias_first[run_id]
     k = np.arange(rk.count)
     i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
     rows = (3 * (rk.first + k)[:, None, None] + i).ravel()
     cols = (3 * (first + k)[:, None, None] + j).ravel()
-    to_bias = sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(model.n_unknowns, model.n_unknowns))
-    return replace(block, A=sp.csr_matrix(block.A - block.A @ to_bias), per_axis=None)
+    return sp.csr_matrix((scale.ravel(), (rows, cols)), shape=(model.n_unknowns, model.n_unknowns))
 
 
 def gauss_markov(model: CorrectionModel, run_id: str, correlation_m: float) -> Block:

@@ -28,7 +28,14 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from railtraj.adjust import observations as obs
-from railtraj.adjust.gnss_bias import bias_scale, estimated_bias, gauss_markov, gnss_share, on_drift
+from railtraj.adjust.gnss_bias import (
+    bias_scale,
+    estimated_bias,
+    gauss_markov,
+    gnss_share,
+    on_bias,
+    on_drift,
+)
 from railtraj.adjust.model import CorrectionModel
 from railtraj.adjust.offsets import offset_covariance, resolved_by_window, usable_offset
 from railtraj.adjust.recentre import recentre
@@ -51,7 +58,7 @@ class SplineConfig:
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
     bend_from_reported_sd: bool = True  # per outage, raise that density until the model's prior reaches the run's sd
-    max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor
+    max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor (and a GNSS bias' bend)
     # where the widened run's sd is GNSS-like, the widening is a bias state beside the drift,
     # correlated over this many metres (0: freer drift there too, the treatment before session 55)
     gnss_bias_correlation_m: float = 25.0
@@ -191,8 +198,9 @@ class SplineOptimizer:
         if not biased:
             return blocks
         scale = self._bias_scale[run_id] = cfg.gnss_bias_sd_scale * bias_scale(gnss_bias)
+        bias_bend = obs.smoothness(model, run_id, density * cfg.max_bend_widening)
         return [on_drift(b, model, run_id, scale) for b in blocks] + [
-            gauss_markov(model, run_id, cfg.gnss_bias_correlation_m)]
+            gauss_markov(model, run_id, cfg.gnss_bias_correlation_m), on_bias(bias_bend, model, run_id, scale)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]
