@@ -9,22 +9,22 @@ correlated over a length, reverting to zero beyond it. So does the adjustment:
 
 ``d`` is the drift (the run's prior at its reported sd and the smoothness act on ``d = c - b``),
 ``u`` a unit first-order Gauss-Markov process along the track (``u_0 ~ N(0, I)``,
-``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), smooth as the freed drift is
-(``b``'s second differences at the drift's bend density times ``max_bend_widening``: a
-first-order process alone wandered between weak pairs, 3.7 -> 8.6 cm on the full-size mixed
-survey with a portal bias), and ``S S^T`` the share of the
+``u_{k+1} = phi u_k + w``, ``phi = exp(-h / correlation_m)``), and ``S S^T`` the share of the
 covariance the sd check widened the run by (its disagreement with the other runs, in the track
-frame) that is GNSS's (:func:`gnss_share`), times ``gnss_bias_sd_scale``^2 (2: a prior of one
-disagreement's sd shaved a multipath peak by a centimetre). Ties and tile offsets see ``c`` alone: the bias knots
-enter only the run's own model rows.
+frame) that is GNSS's (:func:`gnss_share`), times ``gnss_bias_sd_scale``^2 (2: with one
+disagreement's sd the prior shaved a multipath peak by a centimetre). ``b`` bends no more
+freely than the freed drift (its second differences at the drift's bend density times
+``max_bend_widening``): a first-order process alone wandered between weak pairs in the tunnel
+behind a portal (3.7 -> 8.6 cm on the full-size mixed survey with a portal bias). Ties and tile
+offsets see ``c`` alone: the bias knots enter only the run's own model rows.
 
 What it changes, against widening the prior and freeing the bend (the earlier treatment, kept
-where the run's sd is the smoother's drift): the drift stays held by the GNSS sd the run reports,
-so the correction can follow a bias that sets in within metres of a portal, and past the last
-observation of a freed run it no longer carries on at the rate the observations last saw (the
-smoothness extrapolates a drift linearly: at a survey's free end that put a run 7.5-21 cm off
-where its GNSS was right to 2 cm); the bias reverts towards zero over ``correlation_m`` and the
-corrected sd grows back to the bias' sd (docs/method.md, "Session 55").
+where the run's sd is the smoother's drift): the drift stays held by the GNSS sd the run
+reports, and past the last observation of a freed run the bias fades back towards zero over
+``correlation_m`` (the smoothness alone extrapolates linearly: at a survey's free end that put a
+run 7.5-21 cm off where its GNSS was right to 2 cm; the bias' own smoothness still carries some
+of the last rate on), while the corrected sd grows back towards the bias' sd (docs/method.md,
+"Session 55").
 """
 
 from __future__ import annotations

@@ -58,7 +58,7 @@ class SplineConfig:
     knot_unit: str = "m"               # m: metres travelled (default); s: seconds
     drift_curvature_sd: float = 0.0016  # drift model: white-noise density of its bend along the track, m/m^1.5
     bend_from_reported_sd: bool = True  # per outage, raise that density until the model's prior reaches the run's sd
-    max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd grows up to this factor (and a GNSS bias' bend)
+    max_bend_widening: float = 2.0     # where the sd check widened a run's sd, its bend's sd (and a GNSS bias') grows up to this factor
     # where the widened run's sd is GNSS-like, the widening is a bias state beside the drift,
     # correlated over this many metres (0: freer drift there too, the treatment before session 55)
     gnss_bias_correlation_m: float = 25.0
