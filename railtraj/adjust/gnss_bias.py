@@ -59,22 +59,22 @@ def bias_scale(covariance: np.ndarray) -> np.ndarray:
     return vecs * np.sqrt(np.maximum(vals, 0.0))[:, None, :]
 
 
-def on_drift(block: Block, model: CorrectionModel, run_id: str, scale: np.ndarray) -> Block:
-    """``block``'s rows on the run's correction ``c`` turned into rows on its drift ``c - b``:
-    every coefficient ``a`` of ``c(knot)`` gains ``-a S(knot)`` on ``u(knot)``. ``scale``: ``S``
-    (n_knots, 3, 3) of the run."""
-    return replace(block, A=sp.csr_matrix(block.A - block.A @ _to_bias(model, run_id, scale)), per_axis=None)
+def on_drift(block: Block, to_bias: sp.csr_matrix) -> Block:
+    """``block``'s rows on a run's correction ``c`` turned into rows on its drift ``c - b``:
+    every coefficient ``a`` of ``c(knot)`` gains ``-a S(knot)`` on ``u(knot)``. ``to_bias``: the
+    run's :func:`bias_map`."""
+    return replace(block, A=sp.csr_matrix(block.A - block.A @ to_bias), per_axis=None)
 
 
-def on_bias(block: Block, model: CorrectionModel, run_id: str, scale: np.ndarray) -> Block:
-    """``block``'s rows on the run's correction ``c`` moved onto its bias ``b = S u`` (a
-    smoothness of the bias itself)."""
-    return replace(block, A=sp.csr_matrix(block.A @ _to_bias(model, run_id, scale)), per_axis=None)
+def on_bias(block: Block, to_bias: sp.csr_matrix) -> Block:
+    """``block``'s rows on a run's correction ``c`` moved onto its bias ``b = S u`` (a
+    smoothness of the bias itself). ``to_bias``: the run's :func:`bias_map`."""
+    return replace(block, A=sp.csr_matrix(block.A @ to_bias), per_axis=None)
 
 
-def _to_bias(model: CorrectionModel, run_id: str, scale: np.ndarray) -> sp.csr_matrix:
-    """The map from a run's correction unknowns to its bias ``S u``: ``S(knot)`` at (correction
-    knot, bias knot)."""
+def bias_map(model: CorrectionModel, run_id: str, scale: np.ndarray) -> sp.csr_matrix:
+    """The map from a run's correction unknowns to its bias ``S u``: ``S(knot)`` (``scale``,
+    (n_knots, 3, 3)) at (correction knot, bias knot)."""
     rk, first = model.runs[run_id], model.bias_first[run_id]
     k = np.arange(rk.count)
     i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")

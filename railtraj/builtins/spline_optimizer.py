@@ -29,6 +29,7 @@ import numpy as np
 
 from railtraj.adjust import observations as obs
 from railtraj.adjust.gnss_bias import (
+    bias_map,
     bias_scale,
     estimated_bias,
     gauss_markov,
@@ -180,7 +181,7 @@ class SplineOptimizer:
         if widening is None:
             return [obs.prior(model, run_id, prior_sd), obs.smoothness(model, run_id, density)]
         extra = covariance_at(times, traj.time, widening)
-        biased = cfg.gnss_bias_correlation_m > 0
+        biased = run_id in model.bias_first  # the model holds its bias knots (gnss_bias_correlation_m > 0)
         if biased:  # the widening's share that is a GNSS bias gets its own state; the rest is drift's
             gnss = gnss_share(1.0 - share, model.runs[run_id].knot_distance, cfg.gnss_bias_correlation_m,
                               np.trace(extra, axis1=1, axis2=2) > 0)
@@ -198,9 +199,10 @@ class SplineOptimizer:
         if not biased:
             return blocks
         scale = self._bias_scale[run_id] = cfg.gnss_bias_sd_scale * bias_scale(gnss_bias)
+        to_bias = bias_map(model, run_id, scale)
         bias_bend = obs.smoothness(model, run_id, density * cfg.max_bend_widening)
-        return [on_drift(b, model, run_id, scale) for b in blocks] + [
-            gauss_markov(model, run_id, cfg.gnss_bias_correlation_m), on_bias(bias_bend, model, run_id, scale)]
+        return [on_drift(b, to_bias) for b in blocks] + [
+            gauss_markov(model, run_id, cfg.gnss_bias_correlation_m), on_bias(bias_bend, to_bias)]
 
     def _ties(self, model: CorrectionModel, ties: Sequence[Ties]) -> obs.Block | None:
         parts = [t for t in ties if len(t) and t.run_a in model.runs and t.run_b in model.runs]
