@@ -173,6 +173,10 @@ class PointTile:
     # (m, 3) the run's points just beyond the tile (its neighbouring tiles): what a test of a
     # surface's shape may look at past the tile's edge (railtraj.matching.objects); never matched
     context: np.ndarray | None = None
+    # (3,) the run's horizontal direction of travel over the tile, from its trajectory, where the
+    # pipeline gives it (railtraj.track_direction.pair_travel): a matcher's check of the track
+    # direction it fits; None: not known
+    travel: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "xyz", _as_array("xyz", self.xyz, (3,)))

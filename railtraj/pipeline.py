@@ -65,7 +65,7 @@ from railtraj.resume import Cache, cached_map
 from railtraj.same_track import SameTrackOptions, same_track_offsets
 from railtraj.same_track import summary as same_track_summary
 from railtraj.sd_check import SdCheck, SdCheckOptions, check_reported_sd, with_fading_margin
-from railtraj.track_direction import fitted_direction_note
+from railtraj.track_direction import fitted_direction_note, pair_travel
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
     clock["detect"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    matched, pairs_reused = _match(pairs, keypoints, tile_key, stages, per_process, cache, progress)
+    matched, pairs_reused = _match(pairs, keypoints, tile_key, trajectories, stages, per_process, cache, progress)
     clock["match"] = time.perf_counter() - t0
     log.info("%d of %d tile pairs matched reliably", sum(r.offset.ok for r in matched), len(matched))
 
@@ -179,8 +179,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
         reach = beyond_reach(alongtrack, resolved, searched)
         if reach is not None and _can_widen(stages.matcher, options, reach):
             t0 = time.perf_counter()
-            matched, searched, note, more = _widened(reach, pairs, matched, results, keypoints, tile_key, stages,
-                                                     per_process, cache, progress, survey)
+            matched, searched, note, more = _widened(reach, pairs, matched, results, keypoints, tile_key, trajectories,
+                                                     stages, per_process, cache, progress, survey)
             results, before_chains, alongtrack = _along_track(matched, trajectories, options)
             resolved = [r.offset for r in results]
             reach = beyond_reach(alongtrack, resolved, searched)  # what even the second pass did not reach
@@ -196,7 +196,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             others = [p for p in select_pairs(survey, replace(options, pairs="all")) if ref not in (p.run_a, p.run_b)]
             keypoints, tile_key, more_tiles = _detect(others, keypoints, tile_key, trajectories, stages, per_process,
                                                       cache, progress)
-            others_matched, more = _match(others, keypoints, tile_key, stages, per_process, cache, progress)
+            others_matched, more = _match(others, keypoints, tile_key, trajectories, stages, per_process, cache,
+                                          progress)
             pairs, matched = pairs + others, matched + others_matched
             results, before_chains, alongtrack = _along_track(matched, trajectories, options)
             resolved = [r.offset for r in results]
@@ -314,10 +315,13 @@ def _other_pairs_note(unresolved: dict[str, float], n_pairs: int, options: Pipel
     return note
 
 
-def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, stages: Stages, options: PipelineOptions,
-           cache: Cache | None, progress) -> tuple[list[PairResult], int]:
+def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, trajectories: dict[str, Trajectory],
+           stages: Stages, options: PipelineOptions, cache: Cache | None, progress) -> tuple[list[PairResult], int]:
     """Match ``pairs`` on the executor (finished pairs from ``cache``), in the order of ``pairs``;
-    and how many came from the cache."""
+    and how many came from the cache. Each pair's job carries its runs' directions of travel
+    (:func:`railtraj.track_direction.pair_travel`; not part of the cache key: they overrule only
+    a fitted track direction more than 10 degrees off, and a reprocessed trajectory moves them
+    by hundredths of a degree)."""
     order = visit_order(pairs)
     backwards = order[::-1]  # the tiles detected last are still in the tile cache: match them first
     pair_keys = [cache.pair_key(pairs[k], tile_key[(pairs[k].run_a, pairs[k].tile_a.path)],
@@ -325,7 +329,9 @@ def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, stages: Stage
                                 {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
                  if cache else "" for k in backwards]
     jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
-             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options) for k in backwards]
+             keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options,
+             tuple(pair_travel(trajectories[run], pairs[k].overlap_min, pairs[k].overlap_max)
+                   for run in (pairs[k].run_a, pairs[k].run_b))) for k in backwards]
     with blas_one_thread():
         matched, reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
                                      progress=progress or _log_progress("matched", "tile pairs"))
@@ -358,8 +364,9 @@ def _can_widen(matcher, options: PipelineOptions, reach: BeyondReach) -> bool:
 
 
 def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult], resolved: list[PairResult],
-             keypoints: dict, tile_key: dict, stages: Stages, options: PipelineOptions, cache: Cache | None,
-             progress, survey: Survey) -> tuple[list[PairResult], float, str | None, int]:
+             keypoints: dict, tile_key: dict, trajectories: dict[str, Trajectory], stages: Stages,
+             options: PipelineOptions, cache: Cache | None, progress,
+             survey: Survey) -> tuple[list[PairResult], float, str | None, int]:
     """The matcher's results ``matched`` with the tile pairs of the run pairs ``reach`` names
     matched again within a wider window (the suggested one, at most ``pipeline.max_widened_m``),
     but for those the chains had already used along the track (``resolved``: ``ok``, or
@@ -390,8 +397,8 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
     log.warning(note)
     wide = replace(stages, matcher=stages.matcher.widened(window))
     redo = with_context([pairs[k] for k in again], survey, window + CONTEXT_M)
-    again_matched, more = _match(redo, keypoints, tile_key, wide, replace(options, max_misalignment_m=window), cache,
-                                 progress)
+    again_matched, more = _match(redo, keypoints, tile_key, trajectories, wide,
+                                 replace(options, max_misalignment_m=window), cache, progress)
     out = list(matched)
     for k, r in zip(again, again_matched, strict=True):
         out[k] = r
@@ -506,9 +513,10 @@ def match_pair(job: tuple) -> PairResult:
 
     Both tiles are cropped to their overlap grown by the largest expected misalignment, and so
     are the keypoints, so that partly overlapping tiles compare like with like. The tiles come
-    from this process's tile cache when detection or an earlier pair has just read them.
+    from this process's tile cache when detection or an earlier pair has just read them, each
+    with its run's direction of travel there (:attr:`railtraj.data.PointTile.travel`).
     """
-    pair, (kp_a, sec_a), (kp_b, sec_b), stages, options = job
+    pair, (kp_a, sec_a), (kp_b, sec_b), stages, options, (travel_a, travel_b) = job
     margin = options.max_misalignment_m
     lo = np.asarray(pair.overlap_min, dtype=float) - margin
     hi = np.asarray(pair.overlap_max, dtype=float) + margin
@@ -517,8 +525,10 @@ def match_pair(job: tuple) -> PairResult:
 
     t = time.perf_counter()
     tiles = tile_cache(options.tile_cache_gb)
-    tile_a = tiles.read_with_context(pair.tile_a.path, pair.run_a, pair.context_a, (lo, hi), CONTEXT_M)
-    tile_b = tiles.read_with_context(pair.tile_b.path, pair.run_b, pair.context_b, (lo, hi), CONTEXT_M)
+    tile_a = replace(tiles.read_with_context(pair.tile_a.path, pair.run_a, pair.context_a, (lo, hi), CONTEXT_M),
+                     travel=travel_a)
+    tile_b = replace(tiles.read_with_context(pair.tile_b.path, pair.run_b, pair.context_b, (lo, hi), CONTEXT_M),
+                     travel=travel_b)
     kp_a, kp_b = (kp.subset(np.flatnonzero(((kp.xyz >= lo) & (kp.xyz <= hi)).all(axis=1))) for kp in (kp_a, kp_b))
     seconds["read"] += time.perf_counter() - t
 

@@ -74,6 +74,22 @@ def on_travel_direction(o: TileOffset, trajectories: dict[str, Trajectory]) -> T
     return replace(o, cov=cov, info=info)
 
 
+def pair_travel(traj: Trajectory, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The run's horizontal direction of travel where its trajectory crosses the plan box
+    ``lo``-``hi`` (a tile pair's overlap), at its middle epoch inside (inside, should it pass
+    twice); None where it never is or stands still there. Given to the matcher with the tiles (:attr:`railtraj.data.PointTile.travel`):
+    a fit started far across the track has its weakest direction across, not along (a held-out
+    pair whose tile held one wall of a tunnel the grid cut lengthwise)."""
+    inside = np.flatnonzero(((traj.xyz[:, :2] >= np.asarray(lo)[:2]) & (traj.xyz[:, :2] <= np.asarray(hi)[:2]))
+                            .all(axis=1))
+    if not len(inside):
+        return None
+    move = travel_direction(traj, float(traj.time[inside[len(inside) // 2]]))
+    if move is None or not np.hypot(move[0], move[1]) > 1e-6:
+        return None
+    return np.array([move[0], move[1], 0.0]) / np.hypot(move[0], move[1])
+
+
 def fitted_direction_note(offsets: list[TileOffset]) -> str | None:
     """A note (and a warning) when some pairs kept the matcher's fitted direction because their
     run a's trajectory did not give one there (the train stood still)."""
@@ -88,4 +104,5 @@ def fitted_direction_note(offsets: list[TileOffset]) -> str | None:
     return note
 
 
-__all__ = ["fitted_direction_note", "on_travel_direction", "rotation_between", "travel_direction", "travel_step"]
+__all__ = ["fitted_direction_note", "on_travel_direction", "pair_travel", "rotation_between", "travel_direction",
+           "travel_step"]

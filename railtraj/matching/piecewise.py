@@ -71,6 +71,16 @@ WINDOW_AGREEMENT = 0.1
 #: an edge profile's peak a curve without valleys is moved to must rise this many sd above the
 #: higher dip beside it (:func:`edge_peak`); tube 515's joints rose 8-38, its noise 3-4
 MIN_EDGE_PEAK = 5.0
+#: degrees: a fitted track direction further than this from the direction of travel is not the
+#: track's (noise turns it 0.1-1.7 degrees; a fit with no wall in reach, 90)
+MAX_AXIS_TURN_DEG = 10.0
+#: 1/m: no drift bends the runs' offset across or up faster than this within a tile pair (a
+#: curvature of 3 mm/m^2 is a 19 cm bow over 25 m). Windows whose across or up values a parabola
+#: fits only so bent disagree: of 3 108 pairs with windows on 112 simulated surveys, 99.9 % of
+#: the ok and coarse ones bent less than 1.9 mm/m^2 and 5 more than 3: two ambiguous, one portal
+#: pair 1.6 cm off, and two 14.5 and 34-54 cm off across claiming 1-2 cm (one of them a station's
+#: two platform edges, each fitting some windows of a sparse scan)
+MAX_CURVATURE = 0.003
 
 
 @dataclass(frozen=True)
@@ -87,6 +97,7 @@ class Piecewise:
     resid_sd: np.ndarray  # (3,) scatter of the used windows about the curve, along/across/up
     marks: LazyMarks | None = None  # the clouds' intensity marks and short objects, where looked for
     off_marks: int = 0  # edge windows a mark showed on another alias: across and up only (_off_the_marks)
+    axis_from_travel: bool = False  # the direction of travel overruled the fitted track direction (track_axis)
 
     @property
     def on_marks(self) -> bool:
@@ -148,23 +159,40 @@ class Piecewise:
                 "windows": np.round(self.windows, 4).tolist(), "windows_used": self.n_used,
                 "axis": self.axis.tolist(), "ref_point": (self.origin + self.s_ref * self.axis).tolist(),
                 "gradient": self.gradient.tolist(), "fit_cov": self.cov.tolist(),
-                **({"windows_off_marks": self.off_marks} if self.off_marks else {})}
+                **({"windows_off_marks": self.off_marks} if self.off_marks else {}),
+                **({"axis_from_travel": True} if self.axis_from_travel else {})}
 
 
-def track_axis(information: np.ndarray) -> np.ndarray:
+def track_axis(information: np.ndarray, travel: np.ndarray | None = None) -> np.ndarray:
     """Unit horizontal track direction: the weakest direction of a point-to-plane information
-    matrix (walls and floor constrain everything but the track), levelled.
+    matrix (walls and floor constrain everything but the track), levelled; or ``travel`` (the
+    run's horizontal direction of travel, :attr:`railtraj.data.PointTile.travel`) where the two
+    differ by more than :data:`MAX_AXIS_TURN_DEG`.
 
     Not the principal axis of the points: a tunnel crossing a square tile diagonally is cut
     unevenly at the corners, and that axis was 1.7 degrees off in the thesis tunnel, enough
-    to put a 4.5 m rib alias 14 cm across and hide it from the alias check.
+    to put a 4.5 m rib alias 14 cm across and hide it from the alias check. Not the direction
+    of travel either where the two agree: the windows are cut along the surfaces, and the
+    pipeline turns the pair's covariance onto the trajectory's direction afterwards
+    (:mod:`railtraj.track_direction`). But a fit started far across the track (a sparse scan
+    whose votes failed, a tile that holds one wall of a twin-track tunnel the grid cuts
+    lengthwise) has no wall in reach, and its weakest direction is across: a held-out survey's
+    pair was then cut into windows across the track, placed "along" on the profile spacing
+    and came out 13 cm off across, claiming 1 cm.
     """
     v = np.linalg.eigh(information)[1][:, 0]
     v = np.array([v[0], v[1], 0.0])
     norm = np.linalg.norm(v)
     if not np.isfinite(norm) or norm < 1e-6:
-        return np.array([1.0, 0.0, 0.0])
+        return np.array([1.0, 0.0, 0.0]) if travel is None else _canonical(travel)
     v /= norm
+    if travel is not None and abs(v @ travel) < np.cos(np.radians(MAX_AXIS_TURN_DEG)):
+        v = travel
+    return _canonical(v)
+
+
+def _canonical(v: np.ndarray) -> np.ndarray:
+    """``v`` or ``-v``, whichever points east (or north, if it points neither east nor west)."""
     return v if v[0] > 0 or (v[0] == 0 and v[1] > 0) else -v
 
 
@@ -517,7 +545,9 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
 
     The degree follows the windows kept: a parabola from 4 (drift bends within a tile: on the
     thesis tunnel a straight line left 14.9 / 4.7 / 4.4 mm RMS at the reference point, a
-    parabola 4.8 / 1.7 / 3.4 mm), a line from 2, a constant from 1. A window whose along-track
+    parabola 4.8 / 1.7 / 3.4 mm), a line from 2, a constant from 1; across and up a line where
+    a parabola through 3 windows or more bends more than :data:`MAX_CURVATURE` (the windows
+    disagree: the offset's sd there is at least half their spread). A window whose along-track
     offset is more than ``reject`` (3 window sd) off the curve through the others, in that
     difference's own sd (:func:`_deleted_residual`), is dropped, the worst first, while 3 or
     more remain (a tile pair left with 3 is not ``ok``: windows that disagree that much say the
@@ -537,18 +567,25 @@ def fit_curve(windows: np.ndarray, axis: np.ndarray, s_ref: float, reject: float
             break
         used[idx[int(np.argmax(loo))]] = False
     coef, sd, var_scale = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
+    disagree = np.zeros(3)  # half the spread of windows that no drift explains (across, up)
     # along from the windows that found it; across and up also from those that found none
-    for axes, rows in ((slice(0, 1), used), (slice(1, 3), used | ~along)):
-        if rows.any():
-            c, G = _poly(s[rows], d[rows, axes])
-            coef[:, axes] = c
-            sd[axes] = _scatter(d[rows, axes] - np.vander(s[rows], 3, increasing=True) @ c, G)
-            var_scale[axes] = float(np.linalg.inv(G.T @ G)[0, 0])  # s is relative to s_ref: the intercept
-        else:  # no window found the along-track offset: it is unknown
+    for axes, rows in ((range(0, 1), used), (range(1, 3), used | ~along)):
+        if not rows.any():  # no window found the along-track offset: it is unknown
             coef[0, axes] = d[:, axes].mean(axis=0)
             var_scale[axes] = np.inf
+            continue
+        for k in axes:
+            c, G = _poly(s[rows], d[rows, k:k + 1])
+            if k > 0 and abs(_bend(s[rows], d[rows, k])) > MAX_CURVATURE:  # no drift bends so: they disagree
+                c, G = _poly(s[rows], d[rows, k:k + 1], max_degree=1)
+                disagree[k] = np.ptp(d[rows, k]) / 2
+            coef[:, k] = c[:, 0]
+            sd[k] = _scatter(d[rows, k:k + 1] - np.vander(s[rows], 3, increasing=True) @ c, G)[0]
+            var_scale[k] = float(np.linalg.inv(G.T @ G)[0, 0])  # s is relative to s_ref: the intercept
     sd = np.maximum(sd, sd_floor)
-    cov_track = np.diag(np.minimum(sd**2 * var_scale, UNKNOWN_VAR))
+    # windows that disagree may each sit on one of two alignments (a station's platform edges):
+    # the truth can be the outermost, so the sd is at least half their spread, not the line's
+    cov_track = np.diag(np.minimum(np.maximum(sd**2 * var_scale, disagree**2), UNKNOWN_VAR))
     return coef @ frame, frame.T @ cov_track @ frame, used, sd
 
 
@@ -643,14 +680,22 @@ def _times_near(fit: Piecewise, xyz: np.ndarray, times: np.ndarray, s_values: np
     return out
 
 
-def _poly(s: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _poly(s: np.ndarray, d: np.ndarray, max_degree: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares coefficients (3, k) of ``d`` (n, k) over ``s^0, s^1, s^2`` (the degree the number
-    of windows allows, higher ones zero) and the design matrix."""
-    degree = 2 if len(s) >= 4 else min(len(s) - 1, 1)
+    of windows allows, at most ``max_degree``, higher ones zero) and the design matrix."""
+    degree = min(max_degree, 2 if len(s) >= 4 else min(len(s) - 1, 1))
     G = np.vander(s, degree + 1, increasing=True)
     coef = np.zeros((3, d.shape[1]))
     coef[: degree + 1] = np.linalg.lstsq(G, d, rcond=None)[0]
     return coef, G
+
+
+def _bend(s: np.ndarray, y: np.ndarray) -> float:
+    """Curvature (the coefficient of ``s^2``) of the least-squares parabola through ``y`` at ``s``:
+    exact through 3 windows, 0 through fewer."""
+    if len(s) < 3:
+        return 0.0
+    return float(np.linalg.lstsq(np.vander(s, 3, increasing=True), y, rcond=None)[0][2])
 
 
 def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -662,7 +707,7 @@ def _scatter(resid: np.ndarray, G: np.ndarray) -> np.ndarray:
 def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, d_start: np.ndarray,
                   length: float = 5.0, information: np.ndarray | None = None, tree: cKDTree | None = None,
                   intensity: tuple[np.ndarray, np.ndarray] | None = None, objects: bool = False,
-                  around: Surroundings | None = None,
+                  around: Surroundings | None = None, travel: np.ndarray | None = None,
                   **window_options) -> Piecewise | None:
     """Fit the curve of offsets moving ``moving`` (run b, inside the overlap) onto ``ref_xyz``.
 
@@ -671,14 +716,16 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     on ``ref_xyz`` (built if None); ``intensity`` the two clouds' intensities, which place
     windows without edges where marks are (:func:`window_offsets`), as do short ``objects``
     (:mod:`railtraj.matching.objects`), told apart from a surface cut by the tile's edge by the
-    runs' points ``around`` ``ref_xyz`` and ``moving``. Returns None when no window
-    could be placed.
+    runs' points ``around`` ``ref_xyz`` and ``moving``; ``travel`` run a's direction of travel
+    (:attr:`railtraj.data.PointTile.travel`), which overrules a fitted direction far from it.
+    Returns None when no window could be placed.
     """
     if information is None or not np.isfinite(information).all():
         information = point_to_plane(target, sample(moving, 20_000), d_start, iterations=3).information
     if not np.isfinite(information).all():
         return None
-    axis = track_axis(information)
+    axis = track_axis(information, travel)
+    from_travel = bool(abs(axis @ track_axis(information)) < np.cos(np.radians(MAX_AXIS_TURN_DEG)))
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
     tree = reference_tree(ref_xyz) if tree is None else tree
@@ -699,7 +746,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     centres = windows[used, 0] if used.any() else windows[:, 0]  # no along-track offset anywhere: all
     half = 0.5 * np.ptp(s) / len(windows)  # half a window
     span = (max(float(s.min()), centres.min() - half), min(float(s.max()), centres.max() + half))
-    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks, off_marks)
+    return Piecewise(coefs, axis, origin, s_ref, cov, table, span, sd, marks, off_marks, from_travel)
 
 
 def curve_through(windows: np.ndarray, axis: np.ndarray, s_ref: float) -> tuple:

@@ -178,7 +178,7 @@ def _window_share(tile: PointTile, information: np.ndarray, window_length: float
     covers; 1 where the track direction is unknown (``information`` not finite)."""
     if not np.isfinite(information).all():
         return 1.0
-    s = tile.xyz @ track_axis(information)
+    s = tile.xyz @ track_axis(information, tile.travel)
     extent = float(np.subtract(*np.quantile(s, [0.995, 0.005])))
     return min(1.0, window_length / extent) if extent > 0 else 1.0
 
@@ -259,7 +259,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
                             chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
                             tau=s.fitness_radius, vote_window=(center, votes.window), around=around,
-                            across_target=across_target, marks_first=marks_first)
+                            across_target=across_target, marks_first=marks_first, travel=tile_a.travel)
         if fit is None:
             return None, inside, 0.0, 0.0, {}
         rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,

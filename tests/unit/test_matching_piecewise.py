@@ -26,6 +26,7 @@ from railtraj.matching.piecewise import (
     reference_times,
     reference_tree,
     surface_normals,
+    track_axis,
     track_frame,
     valley_significance,
     window_ties,
@@ -86,6 +87,53 @@ def test_fit_curve_degree_follows_the_windows():
     two = np.array([[-2.5, 0.1, 0.0, 0.0], [2.5, 0.2, 0.0, 0.0]])
     got, *_ = fit_curve(two, AXIS, 0.0)
     np.testing.assert_allclose(got[:, 0], [0.15, 0.02, 0.0])
+
+
+def test_across_and_up_that_bend_beyond_any_drift_are_a_line_with_its_scatter():
+    """A held-out sparse scan of a station: two platform edges 0.45 m apart across the track each
+    fitted some windows (across m). A parabola through them bends 5 mm/m^2 and leaves 2 cm,
+    which made the pair 54 cm off across, claiming 1.9 cm. No drift bends so: a line, and half
+    the windows' spread is the sd. A drift bending 1 mm/m^2 (more than any simulated) keeps its
+    parabola."""
+    s = np.array([-9.59, -4.98, 0.17, 5.33, 10.25])
+    station = np.column_stack([s, np.zeros(5), [-1.68, -1.33, -1.37, -1.42, -1.84], np.full(5, 0.29)])
+    coefs, cov, _, sd = fit_curve(station, AXIS, 0.0)
+    # the outer windows were right (-1.77): the sd is half the windows' spread, not the line's 13 cm
+    assert coefs[2, 1] == 0.0 and np.sqrt(cov[1, 1]) == pytest.approx(0.255) and sd[1] > 0.15
+    assert np.sqrt(cov[2, 2]) < 0.003  # up agrees: untouched
+    bending = station.copy()
+    bending[:, 2] = -1.5 + 0.004 * s + 0.001 * s**2
+    coefs, cov, _, sd = fit_curve(bending, AXIS, 0.0)
+    assert coefs[2, 1] == pytest.approx(0.001) and sd[1] == pytest.approx(0.003)
+
+
+def test_a_fitted_track_direction_across_the_track_is_overruled_by_the_direction_of_travel(stretched):
+    """A fit started far across the track (votes that failed on a sparse scan, a tile holding one
+    wall of a tunnel the grid cuts lengthwise) has no wall in reach: its weakest direction is
+    across. Windows cut across the track then placed a held-out pair 13 cm off across,
+    claiming 1 cm. The run's trajectory says which way the train went."""
+    a, b, true_d = stretched
+    heading = rotation_z(30)
+    along, across = heading @ [1.0, 0, 0], heading @ [0, 1.0, 0]
+    travel = -along  # (either way along the track)
+    no_wall = 1e6 * np.eye(3) - (1e6 - 10.0) * np.outer(across, across)  # across the weakest
+    assert abs(track_axis(no_wall) @ across) == pytest.approx(1.0)
+    assert abs(track_axis(no_wall, travel) @ along) == pytest.approx(1.0)
+    # a fitted direction within a few degrees of travel is the surfaces' own, and kept
+    tilted = rotation_z(33) @ [1.0, 0, 0]
+    slight = 1e6 * np.eye(3) - (1e6 - 10.0) * np.outer(tilted, tilted)
+    np.testing.assert_allclose(abs(track_axis(slight, travel) @ tilted), 1.0, atol=1e-9)
+
+    target = build_target(a.xyz)
+    start = true_d.mean(axis=0)
+    inside = target.inside(b.xyz + start, 0.3)
+    fit = piecewise_fit(target, a.xyz, b.xyz[inside], start, 5.0, no_wall, travel=travel)
+    assert fit is not None and fit.axis_from_travel and fit.summary()["axis_from_travel"]
+    err = fit.at(b.xyz[inside]) - true_d[inside]
+    assert np.abs(err @ track_frame(fit.axis)[1:].T).max() < 0.003  # across and up
+    wrong = piecewise_fit(target, a.xyz, b.xyz[inside], start, 5.0, no_wall)  # as before: 5 cm off across
+    assert not wrong.axis_from_travel and abs(wrong.axis @ across) == pytest.approx(1.0)
+    assert np.abs((wrong.at(b.xyz[inside]) - true_d[inside]) @ across).max() > 0.02
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,12 @@ import numpy as np
 from railtraj.adjust.offsets import offset_covariance
 from railtraj.alongtrack import AlongTrackOptions, resolve_along_track
 from railtraj.data import Ties, TileOffset, Trajectory
-from railtraj.track_direction import fitted_direction_note, on_travel_direction, rotation_between
+from railtraj.track_direction import (
+    fitted_direction_note,
+    on_travel_direction,
+    pair_travel,
+    rotation_between,
+)
 
 HEADING = np.radians(35.0)  # a tunnel crossing the tiles diagonally
 GRADE = 0.02  # 2 % down-grade: 20 mm a metre
@@ -97,3 +102,17 @@ def test_a_pair_where_the_train_stood_still_keeps_its_fitted_axis_and_says_so():
     note = fitted_direction_note([kept, on_travel_direction(o, {"run_a": _run("run_a", 300000.0)})])
     assert note is not None and note.startswith("1 tile pair(s) keep")
     assert fitted_direction_note([on_travel_direction(o, {"run_a": _run("run_a", 300000.0)})]) is None
+
+
+def test_a_pairs_direction_of_travel_is_where_its_run_crosses_the_pairs_box():
+    """Levelled (the grade left out: the matcher's track direction is horizontal), either way
+    along the track, and None where the run never enters the box or stands still in it."""
+    run = _run("run_a", 300000.0)  # 400 m at 35 degrees from (530000, 180000)
+    lo, hi = np.array([530100.0, 180050.0, -np.inf]), np.array([530125.0, 180075.0, np.inf])
+    travel = pair_travel(run, lo, hi)
+    np.testing.assert_allclose(travel, [np.cos(HEADING), np.sin(HEADING), 0.0], atol=1e-9)
+    back = Trajectory(run.time, run.xyz[::-1], run.rpy, run.sd, run_id="run_b")
+    np.testing.assert_allclose(pair_travel(back, lo, hi), -travel, atol=1e-9)
+    assert pair_travel(run, lo + [0.0, 100.0, 0.0], hi + [0.0, 100.0, 0.0]) is None  # beside the track
+    standing = Trajectory(run.time, np.repeat(run.xyz[200:201], len(run.time), axis=0), run.rpy, run.sd)
+    assert pair_travel(standing, lo, hi) is None
