@@ -51,8 +51,9 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
     ``tunnel_length`` (every section but the cuttings times the value), ``speed``
     (every run's speed times the value), ``tile_size`` (m), ``runs`` (that many passes, the
     catalogue's repeated in turn, 600 s apart) or ``multipath`` (``run_b`` or ``run_b@1``: that
-    run gets portal_trap's GNSS multipath bias at its first, or n-th, portal), to try surveys the
-    catalogue does not hold."""
+    run gets portal_trap's GNSS multipath bias at its first, or n-th, portal), ``heading_deg``
+    and ``origin`` (``x,y``: where the alignment starts; a tunnel along a grid axis with its
+    centre on a tile edge is cut lengthwise), to try surveys the catalogue does not hold."""
     for item in vary:
         key, value = item.split("=")
         if key == "speed":
@@ -68,6 +69,11 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
             run, _, portal = value.partition("@")
             bias = Multipath(run, portal=int(portal or 0), bias=(0.3, -0.25, 0.1))
             scn = replace(scn, drift=replace(scn.drift, multipath=(*scn.drift.multipath, bias)))
+        elif key in ("heading_deg", "origin"):  # the alignment: heading, or where it starts ("x,y")
+            al = scn.geometry.alignment
+            al = replace(al, heading_deg=float(value)) if key == "heading_deg" else \
+                replace(al, origin=(*map(float, value.split(",")), al.origin[2]))
+            scn = replace(scn, geometry=replace(scn.geometry, alignment=al))
         elif key == "tunnel_length":
             scn = replace(scn, geometry=replace(scn.geometry, sections=tuple(
                 (k, n if k == "cutting" else n * float(value)) for k, n in scn.geometry.sections)))
@@ -79,7 +85,7 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
             scn = replace(scn, scanner=replace(scn.scanner, **{key: type(getattr(scn.scanner, key))(value)}))
         else:
             raise SystemExit(f"--vary {item}: not a geometry, scanner or drift field, nor tunnel_length, speed, "
-                             "tile_size, runs or multipath")
+                             "tile_size, runs, multipath, heading_deg or origin")
     return scn
 
 
@@ -179,7 +185,7 @@ def main() -> None:
     ap.add_argument("--optimizer", default="spline")
     ap.add_argument("--pipeline", default="global", choices=["global", "multirun"])
     ap.add_argument("--size", type=float, default=1.0)
-    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry, scanner or drift field (e.g. roughness=1), tunnel_length (factor), speed (factor), tile_size (m) or runs (count)")
+    ap.add_argument("--vary", nargs="*", default=[], help="key=value: a geometry, scanner or drift field (e.g. roughness=1), tunnel_length (factor), speed (factor), tile_size (m), runs (count), multipath (run[@portal]), heading_deg or origin (x,y)")
     ap.add_argument("--pairs", action="store_true", help="also print every tile pair: status, alias shift, error")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
