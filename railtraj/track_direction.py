@@ -77,17 +77,17 @@ def on_travel_direction(o: TileOffset, trajectories: dict[str, Trajectory]) -> T
 def pair_travel(traj: Trajectory, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
     """The run's horizontal direction of travel where its trajectory crosses the plan box
     ``lo``-``hi`` (a tile pair's overlap), at its middle epoch inside (inside, should it pass
-    twice); None where it never is or stands still there. Given to the matcher with the tiles (:attr:`railtraj.data.PointTile.travel`):
-    a fit started far across the track has its weakest direction across, not along (a held-out
-    pair whose tile held one wall of a tunnel the grid cut lengthwise)."""
+    twice); None where it never is or stands still there. Given to the matcher with the tiles
+    (:attr:`railtraj.data.PointTile.travel`): a fit started far across the track has its weakest
+    direction across, not along (a held-out pair whose tile held one wall of a tunnel the grid
+    cut lengthwise)."""
     inside = np.flatnonzero(((traj.xyz[:, :2] >= np.asarray(lo)[:2]) & (traj.xyz[:, :2] <= np.asarray(hi)[:2]))
                             .all(axis=1))
     if not len(inside):
         return None
     move = travel_direction(traj, float(traj.time[inside[len(inside) // 2]]))
-    if move is None or not np.hypot(move[0], move[1]) > 1e-6:
-        return None
-    return np.array([move[0], move[1], 0.0]) / np.hypot(move[0], move[1])
+    level = 0.0 if move is None else float(np.hypot(move[0], move[1]))
+    return np.array([move[0], move[1], 0.0]) / level if level > 1e-6 else None
 
 
 def fitted_direction_note(offsets: list[TileOffset]) -> str | None:

@@ -725,7 +725,7 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     if not np.isfinite(information).all():
         return None
     axis = track_axis(information, travel)
-    from_travel = bool(abs(axis @ track_axis(information)) < np.cos(np.radians(MAX_AXIS_TURN_DEG)))
+    from_travel = not np.array_equal(axis, track_axis(information))  # travel overruled the fit
     origin = moving.mean(axis=0)
     s = (moving - origin) @ axis
     tree = reference_tree(ref_xyz) if tree is None else tree
