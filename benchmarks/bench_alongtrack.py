@@ -53,7 +53,9 @@ def varied(scn: Scenario, vary: tuple[str, ...]) -> Scenario:
     catalogue's repeated in turn, 600 s apart) or ``multipath`` (``run_b`` or ``run_b@1``: that
     run gets portal_trap's GNSS multipath bias at its first, or n-th, portal), ``heading_deg``
     and ``origin`` (``x,y``: where the alignment starts; a tunnel along a grid axis with its
-    centre on a tile edge is cut lengthwise), to try surveys the catalogue does not hold."""
+    centre on a tile edge is cut lengthwise), to try surveys the catalogue does not hold. The
+    drift's direction is drawn in the map's frame: to change a heading alone, turn the drift as
+    much (``azimuth_turn_deg``, a drift field: heading 0 instead of 60 with ``azimuth_turn_deg=-60``)."""
     for item in vary:
         key, value = item.split("=")
         if key == "speed":

@@ -75,6 +75,7 @@ class AlongTrackOptions:
     min_significance: float = 3.0   # a candidate's peak rises this many counting sd above its dips
     lattice_significance: float = 2.0  # ... or this many where the significant peaks' lattice puts an alias
     max_misfit_ratio: float = 2.5   # candidates misfitting more than this times the best are dropped
+    misfit_floor: float = 0.02      # ... where misfits below this count as this (a true alias misfits up to 5 %)
     max_candidates: int = 40
     max_pair_sd: float = 0.02      # m: a vaguer pair is never fixed, nor anchors its neighbours
     max_ok_sd: float = 0.015       # m: a vaguer fixed pair anchors the chain but is not ok (5 cm is 3.3 sd)
@@ -460,7 +461,8 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     peaks, movable, shift = peaks[significant], movable[significant], shift[significant]
     period, trains = _alias_period(shift, options.min_period), _trains(shift, options.min_period)
     if len(peaks):
-        keep = misfit[peaks] <= options.max_misfit_ratio * misfit[peaks].min()
+        floored = np.maximum(misfit[peaks], options.misfit_floor)
+        keep = floored <= options.max_misfit_ratio * floored.min()
         peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
     if not len(peaks):
         return None

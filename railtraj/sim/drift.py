@@ -48,6 +48,9 @@ class DriftSpec:
     heading_bias_deg: float = 0.0
     heading_bias_runs: tuple[str, ...] = ()
     multipath: tuple[Multipath, ...] = ()
+    # every outage's drift direction turned by this (degrees): with the alignment's heading turned
+    # as much, the errors stay the same in the track's frame (a heading is then tried on its own)
+    azimuth_turn_deg: float = 0.0
 
 
 def outages(open_sky: np.ndarray) -> list[tuple[int, int]]:
@@ -102,7 +105,7 @@ def _bridged_walk(n: int, env: np.ndarray, rng: np.random.Generator) -> np.ndarr
 def _outage_drift(n: int, env: np.ndarray, spec: DriftSpec, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """One outage's drift (n, 3): envelope x (constant direction + a slow wander), scaled."""
     u = np.linspace(0, 1, n)
-    az = rng.uniform(0, 2 * np.pi)
+    az = rng.uniform(0, 2 * np.pi) + np.radians(spec.azimuth_turn_deg)
     wander = rng.uniform(0.0, 0.4) * np.sin(2 * np.pi * rng.uniform(0.5, 1.5) * u + rng.uniform(0, 2 * np.pi))
     horiz = env[:, None] * (np.array([np.sin(az), np.cos(az)]) + wander[:, None]
                             * np.array([np.cos(az), -np.sin(az)]))
