@@ -461,6 +461,10 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     peaks, movable, shift = peaks[significant], movable[significant], shift[significant]
     period, trains = _alias_period(shift, options.min_period), _trains(shift, options.min_period)
     if len(peaks):
+        # the profile is measured about the curve fitted at the matcher's choice, its across and up
+        # included; an alias 3 m away sees run a's drift moved them by 3 m times its rate, so the
+        # truth there misfit 0.3-4.9 % where the matcher's choice misfit 0-0.8 % (session 57): a
+        # ratio of two such misfits says nothing, and below misfit_floor they count as that
         floored = np.maximum(misfit[peaks], options.misfit_floor)
         keep = floored <= options.max_misfit_ratio * floored.min()
         peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
