@@ -121,6 +121,12 @@ PAIR_ACROSS_SD = 0.005
 SAMPLING_ACROSS_SD = 0.1
 #: how near a multiple of a profile's lattice (a fraction of its spacing) a peak lies on it
 LATTICE_TOLERANCE = 0.1
+#: a pair across a portal: one end of its windows where run b's sd is within OPEN_SKY_SD times the
+#: run's least (GNSS), the other more than MAX_SD_CHANGE times that end's; its rates at both ends
+#: count PORTAL_RATE_VARIANCE times their variance (:func:`_end_rates`)
+OPEN_SKY_SD = 1.5
+MAX_SD_CHANGE = 2.0
+PORTAL_RATE_VARIANCE = 4.0
 #: verdict of a pair whose along-track profile shows no peak: it cannot be ``ok``
 NO_EVIDENCE = "no along-track evidence"
 #: status of a pair fixed on its alias whose own along-track sd exceeds ``max_ok_sd``: the alias
@@ -168,6 +174,9 @@ class Pair:
     profile_ends: np.ndarray | None = None
     # m: spacings of the evenly spaced trains among its peaks (Peaks.trains)
     trains: tuple[float, ...] = ()
+    # (s, rate, variance) at both ends of the windows a parabola was fitted to (_end_rates): the
+    # chain observes these instead of ``rate`` where they are given
+    end_rates: tuple[tuple[float, float, float], ...] = ()
 
 
 class Peaks(NamedTuple):
@@ -390,13 +399,15 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
     if lone_mark:
         reach = prof["start"] + np.array([0.0, prof["step"] * (len(prof["fitness"]) - 1)])
         ends = o.d @ direction + reach * (axis @ direction)
-    return Pair(index, float(np.interp(times[1], traj_b.time, travelled[o.run_b])), u, shift, evidence,
-                _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b), float(np.sqrt(direction @ cov @ direction)),
+    s = float(np.interp(times[1], traj_b.time, travelled[o.run_b]))
+    rate = _rate(o, np.asarray(pw["gradient"], float), direction, sign, traj_b)
+    return Pair(index, s, u, shift, evidence, rate, float(np.sqrt(direction @ cov @ direction)),
                 max(prior_var, 1e-6), float(o.d @ direction), float(axis @ direction),
                 rate_trusted=("few_votes" not in o.info or _periodic(shift, options.min_period))
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
                 rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark, profile_ends=ends,
-                trains=() if lone_mark else trains)
+                trains=() if lone_mark else trains,
+                end_rates=() if _degenerate_fit(o) else _end_rates(pw, s, rate, sign, traj_b, travelled[o.run_b], options))
 
 
 def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
@@ -463,9 +474,12 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     if len(peaks):
         # the profile is measured about the curve fitted at the matcher's choice, its across and up
         # included; an alias 3 m away sees run a's drift moved them by 3 m times its rate, so the
-        # truth there misfit 0.3-4.9 % where the matcher's choice misfit 0-0.8 % (session 57): a
-        # ratio of two such misfits says nothing, and below misfit_floor they count as that
-        floored = np.maximum(misfit[peaks], options.misfit_floor)
+        # truth there misfit 0.3-4.9 % of the points where the matcher's choice misfit 0-0.8 %
+        # (session 57): a ratio of two such shares says nothing, and below misfit_floor they count
+        # as that. (An edge profile's misfits are costs, no shares: there the joint the curve was
+        # fitted on misfits far less than the others, and its ripple is no alias.)
+        floor = 0.0 if len(measured) == len(fitness) else options.misfit_floor
+        floored = np.maximum(misfit[peaks], floor)
         keep = floored <= options.max_misfit_ratio * floored.min()
         peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
     if not len(peaks):
@@ -609,6 +623,54 @@ def _rate_variance(pw: dict, options: AlongTrackOptions) -> float:
     # windows scattered more than window_sd about the curve lend its slope that scatter
     scatter = max(options.window_sd, float(pw.get("window_resid_sd_mm", [0.0])[0]) / 1000.0)
     return float(options.rate_sd**2 + np.linalg.pinv(design.T @ design)[1, 1] * scatter**2)
+
+
+def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory, travelled_b: np.ndarray,
+               options: AlongTrackOptions) -> tuple[tuple[float, float, float], ...]:
+    """The pair's drift rate at both ends of the windows its curve was fitted to, where that curve
+    is a parabola (4 windows or more spanning ``drift_rate_span``): ``(s, rate, variance)`` per end,
+    ``s`` in metres along run b's track (the pair is at ``s``, its axis ``sign`` along run b's
+    travel), the variance that of the parabola's slope there (as :func:`_rate_variance`), plus
+    ``rate_sd`` squared. Empty otherwise. A pair across a portal (:data:`PORTAL_RATE_VARIANCE`)
+    counts them at twice their sd: where GNSS comes back the drift stops at a kink no parabola
+    follows. At 1 sd, one such pair of held-out thesis 5623 gave -9 mm/m at its inner end where
+    the truth was -36 (4.8 sd), the prediction at its neighbour moved 15 cm, the neighbour stayed
+    unfixed, and the run pair went 0.033 / 0.062 -> 0.259 / 0.476 m (0.027 / 0.055 at 2 sd);
+    dropped altogether, the portal pairs of 5612, right to 1.2 sd, were lost with them, and
+    0.031 / 0.082 m went back to 0.107 / 0.198.
+
+    One rate per pair, at its middle, samples the drift's rate every 25 m along a tunnel that runs
+    along the tile grid; where the rate swings (+33 to -43 mm/m within 125 m, held-out thesis
+    5612 at heading 0), a rate missing at its extreme put the prediction 0.4-0.8 m off over
+    100 m, 2.4-4 of its sd. The parabola's slope at its ends samples it twice as densely. On 54
+    held-out surveys the end rates were 3.3 mm/m RMS off the truth (the middle's 1.8), 0.3 % of
+    them beyond 3 sd."""
+    x = _used_windows(pw)
+    if len(x) < 4 or np.ptp(x) < options.drift_rate_span or "curvature_mm_per_m2" not in pw:
+        return ()
+    x = x - np.median(x)  # the reference point, about the windows' median (as _rate_variance)
+    scatter = max(options.window_sd, float(pw.get("window_resid_sd_mm", [0.0])[0]) / 1000.0)
+    design = np.vander(x, 3, increasing=True)
+    cov = np.linalg.pinv(design.T @ design) * scatter**2
+    bend = 2.0 * float(pw["curvature_mm_per_m2"][0]) / 1000.0  # d rate / d x along the pair's axis
+    ends_at = np.interp(s + sign * np.array([x.min(), x.max()]), travelled_b, traj_b.time)
+    inflate = PORTAL_RATE_VARIANCE if _across_portal(traj_b, ends_at) else 1.0
+    ends = []
+    for end in (x.min(), x.max()):
+        slope = np.array([0.0, 1.0, 2.0 * end])  # the parabola's slope at ``end``
+        ends.append((s + sign * end, rate + bend * end, inflate * (options.rate_sd**2 + float(slope @ cov @ slope))))
+    return tuple(sorted(ends))
+
+
+def _across_portal(traj: Trajectory, times: np.ndarray) -> bool:
+    """Whether the run passes a portal between ``times``: at one its horizontal sd is within
+    :data:`OPEN_SKY_SD` times its least (GNSS), at the other more than :data:`MAX_SD_CHANGE` times
+    that (False where the run reports no sd)."""
+    if traj.sd is None:
+        return False
+    horizontal = np.hypot(*traj.sd_at(times)[:, :2].T)
+    least = float(np.hypot(traj.sd[:, 0], traj.sd[:, 1]).min())
+    return bool(horizontal.min() <= OPEN_SKY_SD * least and horizontal.max() > MAX_SD_CHANGE * horizontal.min())
 
 
 def _with_drift_rate(o: TileOffset, pair: Pair, trajectories: dict[str, Trajectory],
@@ -922,7 +984,7 @@ def _consensus_rates(chain: list[Pair], options: AlongTrackOptions) -> list[Pair
         # only a rate its neighbours clearly disagree with is replaced: beyond 3 sd of its own
         # measurement and of the line's miss where the rate bends
         stray = coef is not None and abs(p.rate - coef[0]) > 3.0 * np.sqrt((p.rate_var or options.rate_sd**2) + bend_var[i])
-        out.append(replace(p, rate=float(coef[0])) if stray else p)
+        out.append(replace(p, rate=float(coef[0]), end_rates=()) if stray else p)
     return out
 
 
@@ -965,6 +1027,22 @@ def _anchor_variance(chain: list[Pair], options: AlongTrackOptions) -> np.ndarra
     return np.where(prior_var <= options.anchor_sd**2, prior_var * inflate, np.inf)
 
 
+def _nodes(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions) -> list[tuple[float, int, float, float, int]]:
+    """Where :func:`_smooth` observes the chain, in order along run b's track: ``(s, pair, rate,
+    rate variance, step)`` with ``pair`` the pair whose offset is observed there (-1 at the ends of
+    its windows, where only their rates are: :attr:`Pair.end_rates`), ``rate`` NaN where none is
+    measured (a pair whose rate is not trusted counts once its alias is fixed), and ``step`` the
+    chain step whose wander applies on the way there (that of the pair it belongs to)."""
+    nodes = []
+    for i, p in enumerate(chain):
+        if p.rate_trusted and p.end_rates:
+            nodes += [(s, -1, rate, var, i) for s, rate, var in p.end_rates] + [(p.s, i, np.nan, np.nan, i)]
+        else:
+            rate = p.rate if p.rate_trusted or np.isfinite(fixed[i]) else np.nan
+            nodes.append((p.s, i, rate, p.rate_var or options.rate_sd**2, i))
+    return sorted(nodes, key=lambda node: node[0])
+
+
 def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
             walks: np.ndarray, anchor_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and variance of the along-track offset at every pair (Rauch-Tung-Striebel smoother).
@@ -972,9 +1050,10 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
     The state is the offset and its rate (per metre of run b's travel); the rate wanders as a
     random walk of density ``walks`` per step (:func:`_rate_walks`: the drift's bend as white noise, as in the
     adjustment's smoothness), so the offset between two pairs follows the rate the pairs
-    around them agree on, not just the mean of two. Observed at every pair: its measured rate
-    (``rate_sd``), the offset as 0 +- the trajectories' sd where that is at most ``anchor_sd``,
-    and its fixed candidate at fixed pairs.
+    around them agree on, not just the mean of two. Observed (:func:`_nodes`): each pair's
+    measured rate (``rate_sd``), at the ends of its windows where its curve is a parabola
+    (:func:`_end_rates`), the offset as 0 +- the trajectories' sd where that is at most
+    ``anchor_sd``, and its fixed candidate at fixed pairs.
 
     A rate more than ``rate_gate`` sd off what the chain expects is one stray window bending a
     pair's curve (16 mm/m against its neighbours' 1-5 mm/m, on a pair whose own fit was 24 cm
@@ -982,38 +1061,42 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
     prediction onto its own candidate. (At 3 sd, a drift whose rate climbed from -4 to +23 mm/m
     within 60 m, all its pairs agreeing, was held back and its chain lost.)
     """
-    n = len(chain)
+    nodes = _nodes(chain, fixed, options)
+    n = len(nodes)
     xf, pf = np.zeros((n, 2)), np.zeros((n, 2, 2))  # filtered
     xp, pp = np.zeros((n, 2)), np.zeros((n, 2, 2))  # predicted
     q = np.asarray(walks, float) ** 2
-    for i, p in enumerate(chain):  # a few hundred pairs per run pair at most
-        if i == 0:
-            xp[i], pp[i] = np.zeros(2), np.diag([1e6, 1.0])
+    for k, (s, i, rate, rate_var, step) in enumerate(nodes):  # a few hundred per run pair at most
+        if k == 0:
+            xp[k], pp[k] = np.zeros(2), np.diag([1e6, 1.0])
         else:
-            ds = p.s - chain[i - 1].s
+            ds = s - nodes[k - 1][0]
             F = np.array([[1.0, ds], [0.0, 1.0]])
-            xp[i] = F @ xf[i - 1]
-            pp[i] = F @ pf[i - 1] @ F.T + q[i] * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
-        x, P = xp[i].copy(), pp[i].copy()
-        rate = p.rate if p.rate_trusted or np.isfinite(fixed[i]) else np.nan
-        prior = 0.0 if np.isfinite(anchor_var[i]) else np.nan
-        rate_var = p.rate_var or options.rate_sd**2
-        for row, z, r in ((1, rate, rate_var), (0, prior, anchor_var[i]), (0, fixed[i], p.sd**2)):
+            xp[k] = F @ xf[k - 1]
+            pp[k] = F @ pf[k - 1] @ F.T + q[step] * np.array([[ds**3 / 3, ds**2 / 2], [ds**2 / 2, ds]])
+        x, P = xp[k].copy(), pp[k].copy()
+        observed = [(1, rate, rate_var)]
+        if i >= 0:
+            observed += [(0, 0.0 if np.isfinite(anchor_var[i]) else np.nan, anchor_var[i]), (0, fixed[i], chain[i].sd**2)]
+        for row, z, r in observed:
             if not np.isfinite(z):
                 continue
-            s = P[row, row] + r
+            innovation_var = P[row, row] + r
             if row == 1:  # a stray rate is held at rate_gate sd
-                s = max(s, (z - x[row]) ** 2 / options.rate_gate**2)
-            k = P[:, row] / s
-            x, P = x + k * (z - x[row]), P - np.outer(k, P[row])
-        xf[i], pf[i] = x, P
+                innovation_var = max(innovation_var, (z - x[row]) ** 2 / options.rate_gate**2)
+            gain = P[:, row] / innovation_var
+            x, P = x + gain * (z - x[row]), P - np.outer(gain, P[row])
+        xf[k], pf[k] = x, P
     xs, ps = xf.copy(), pf.copy()
-    for i in range(n - 2, -1, -1):
-        F = np.array([[1.0, chain[i + 1].s - chain[i].s], [0.0, 1.0]])
-        g = pf[i] @ F.T @ np.linalg.inv(pp[i + 1])
-        xs[i] = xf[i] + g @ (xs[i + 1] - xp[i + 1])
-        ps[i] = pf[i] + g @ (ps[i + 1] - pp[i + 1]) @ g.T
-    return xs[:, 0], ps[:, 0, 0]
+    for k in range(n - 2, -1, -1):
+        F = np.array([[1.0, nodes[k + 1][0] - nodes[k][0]], [0.0, 1.0]])
+        g = pf[k] @ F.T @ np.linalg.inv(pp[k + 1])
+        xs[k] = xf[k] + g @ (xs[k + 1] - xp[k + 1])
+        ps[k] = pf[k] + g @ (ps[k + 1] - pp[k + 1]) @ g.T
+    at_pairs = np.array([(node[1], k) for k, node in enumerate(nodes) if node[1] >= 0]).reshape(-1, 2)
+    mu, var = np.zeros(len(chain)), np.zeros(len(chain))
+    mu[at_pairs[:, 0]], var[at_pairs[:, 0]] = xs[at_pairs[:, 1], 0], ps[at_pairs[:, 1], 0, 0]
+    return mu, var
 
 
 def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongTrackOptions,
