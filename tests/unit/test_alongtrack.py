@@ -1092,3 +1092,27 @@ def test_the_rates_at_the_ends_of_a_pairs_windows_carry_the_prediction_across_a_
     off, sd = errors[True]
     assert (off <= sd).all(), (off, sd)
     assert off.max() < 0.5 * errors[False][0].max()
+
+
+@pytest.mark.parametrize(("portal_at", "inflated"), [(205.0, True), (None, False)])
+def test_a_pair_across_a_portal_gives_its_end_rates_at_twice_their_sd(portal_at, inflated):
+    """Where GNSS comes back the drift stops at a kink no parabola through a pair's windows
+    follows: a pair whose windows run from the open sky (the run's least sd) into the tunnel
+    (more than twice that) gives the chain its end rates at twice their sd; inside the tunnel
+    the same pair gives them at their own."""
+    from railtraj.alongtrack import _end_rates
+
+    t = np.arange(0.0, 30.0, 0.05)
+    s_travelled = 10.0 * t  # 10 m/s
+    inside = s_travelled < portal_at if portal_at else np.ones_like(t, bool)
+    sd = np.where(inside, 0.3, 0.02)[:, None] * np.array([1.0, 1.0, 0.3])
+    traj = Trajectory(t, np.column_stack([530000 + s_travelled, np.full_like(t, 180000.0), np.full_like(t, 10.0)]),
+                      np.tile([0.0, 0.0, 90.0], (len(t), 1)), sd, run_id="run_b")
+    pw = {"windows": [[x, 0.0, 0.0, 0.0, 1.0, 1.0] for x in np.linspace(-10, 10, 5)],
+          "curvature_mm_per_m2": [0.5, 0.0, 0.0], "window_resid_sd_mm": [5.0, 3.0, 3.0]}
+    ends = _end_rates(pw, 200.0, 0.01, 1.0, traj, s_travelled, AlongTrackOptions())
+    plain = _end_rates(pw, 200.0, 0.01, 1.0, replace(traj, sd=None), s_travelled, AlongTrackOptions())
+    assert [e[0] for e in ends] == pytest.approx([190.0, 210.0])
+    assert [e[1] for e in ends] == pytest.approx([0.0, 0.02])  # 10 mm/m, bending 1 mm/m per metre
+    ratio = np.array([e[2] for e in ends]) / np.array([e[2] for e in plain])
+    np.testing.assert_allclose(ratio, 4.0 if inflated else 1.0)
