@@ -443,9 +443,10 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     peaks, props = find_peaks(fitness, prominence=0.0)  # (a peak on the window's edge is no peak)
     n_points = float(prof.get("points", 2000))
     measured = np.asarray(prof.get("noise", []), float)  # an edge profile's: its costs are no counts
+    costs = len(measured) == len(fitness)
 
     def noise(prominence: np.ndarray) -> np.ndarray:
-        if len(measured) == len(fitness):  # the peak's and its dip's errors (about as large)
+        if costs:  # the peak's and its dip's errors (about as large)
             return np.sqrt(2.0) * measured[peaks]
         return _counting_noise(fitness, peaks, prominence, n_points)
 
@@ -478,7 +479,7 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
         # (session 57): a ratio of two such shares says nothing, and below misfit_floor they count
         # as that. (An edge profile's misfits are costs, no shares: there the joint the curve was
         # fitted on misfits far less than the others, and its ripple is no alias.)
-        floor = 0.0 if len(measured) == len(fitness) else options.misfit_floor
+        floor = 0.0 if costs else options.misfit_floor
         floored = np.maximum(misfit[peaks], floor)
         keep = floored <= options.max_misfit_ratio * floored.min()
         peaks, movable, shift = peaks[keep], movable[keep], shift[keep]
@@ -491,7 +492,7 @@ def _profile_peaks(prof: dict, options: AlongTrackOptions) -> Peaks | None:
     shift = np.where(np.abs(shift) < 0.25 * options.min_period, 0.0, shift)
     shift, first = np.unique(shift, return_index=True)
     peaks, movable = peaks[first], movable[first] | (shift == 0.0)  # the matcher's own fit always is
-    top_sd = measured[peaks] if len(measured) == len(fitness) else np.sqrt(misfit[peaks] / n_points)
+    top_sd = measured[peaks] if costs else np.sqrt(misfit[peaks] / n_points)
     return Peaks(shift, movable, misfit[peaks], period, _peak_top_width(fitness, peaks, top_sd) * prof["step"], trains)
 
 
@@ -615,14 +616,22 @@ def _rate_variance(pw: dict, options: AlongTrackOptions) -> float:
     aliases 1.2 m apart, and their slope of -119 mm/m (the truth: 0), taken to 4 mm/m at the
     chain's first pair, bent the prediction 1.3-2.5 m off. Two pairs were fixed there on ring
     aliases, claiming 2-3 cm."""
-    s = _used_windows(pw)
-    if len(s) < 2:
+    if len(_used_windows(pw)) < 2:
         return options.rate_sd**2
-    u = s - np.median(s)  # the reference point: the median of run b's points, about the windows'
-    design = np.vander(u, 3 if len(s) >= 4 else 2, increasing=True)
-    # windows scattered more than window_sd about the curve lend its slope that scatter
+    _, cov = _curve_cov(pw, options)
+    return float(options.rate_sd**2 + cov[1, 1])
+
+
+def _curve_cov(pw: dict, options: AlongTrackOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The windows a pair's along-track curve used, about its reference point (the median of run
+    b's points, about the windows' median), and the covariance of the curve's coefficients (a
+    parabola through 4 or more, a line through fewer), each window known to ``window_sd``, or to
+    the windows' scatter about the curve where that is more (it lends the slope that scatter)."""
+    x = _used_windows(pw)
+    x = x - np.median(x)
+    design = np.vander(x, 3 if len(x) >= 4 else 2, increasing=True)
     scatter = max(options.window_sd, float(pw.get("window_resid_sd_mm", [0.0])[0]) / 1000.0)
-    return float(options.rate_sd**2 + np.linalg.pinv(design.T @ design)[1, 1] * scatter**2)
+    return x, np.linalg.pinv(design.T @ design) * scatter**2
 
 
 def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory, travelled_b: np.ndarray,
@@ -645,13 +654,10 @@ def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory,
     100 m, 2.4-4 of its sd. The parabola's slope at its ends samples it twice as densely. On 54
     held-out surveys the end rates were 3.3 mm/m RMS off the truth (the middle's 1.8), 0.3 % of
     them beyond 3 sd."""
-    x = _used_windows(pw)
-    if len(x) < 4 or np.ptp(x) < options.drift_rate_span or "curvature_mm_per_m2" not in pw:
+    used = _used_windows(pw)
+    if len(used) < 4 or np.ptp(used) < options.drift_rate_span or "curvature_mm_per_m2" not in pw:
         return ()
-    x = x - np.median(x)  # the reference point, about the windows' median (as _rate_variance)
-    scatter = max(options.window_sd, float(pw.get("window_resid_sd_mm", [0.0])[0]) / 1000.0)
-    design = np.vander(x, 3, increasing=True)
-    cov = np.linalg.pinv(design.T @ design) * scatter**2
+    x, cov = _curve_cov(pw, options)
     bend = 2.0 * float(pw["curvature_mm_per_m2"][0]) / 1000.0  # d rate / d x along the pair's axis
     ends_at = np.interp(s + sign * np.array([x.min(), x.max()]), travelled_b, traj_b.time)
     inflate = PORTAL_RATE_VARIANCE if _across_portal(traj_b, ends_at) else 1.0
@@ -1093,10 +1099,8 @@ def _smooth(chain: list[Pair], fixed: np.ndarray, options: AlongTrackOptions,
         g = pf[k] @ F.T @ np.linalg.inv(pp[k + 1])
         xs[k] = xf[k] + g @ (xs[k + 1] - xp[k + 1])
         ps[k] = pf[k] + g @ (ps[k + 1] - pp[k + 1]) @ g.T
-    at_pairs = np.array([(node[1], k) for k, node in enumerate(nodes) if node[1] >= 0]).reshape(-1, 2)
-    mu, var = np.zeros(len(chain)), np.zeros(len(chain))
-    mu[at_pairs[:, 0]], var[at_pairs[:, 0]] = xs[at_pairs[:, 1], 0], ps[at_pairs[:, 1], 0, 0]
-    return mu, var
+    at_pairs = [k for k, node in enumerate(nodes) if node[1] >= 0]  # one node per pair, in chain order
+    return xs[at_pairs, 0], ps[at_pairs, 0, 0]
 
 
 def _placement_variance(o: TileOffset, shift: float, pair: Pair, options: AlongTrackOptions,
