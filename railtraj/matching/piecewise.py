@@ -888,8 +888,15 @@ def edge_profile(target: PlaneTarget, tree: cKDTree, moving: np.ndarray, fit: Pi
     if across:  # pooled over 5 neighbouring shifts: one sample's 7 degrees of freedom let a
         # tenth of its noise estimates fall below half the truth, and a slow undulation of the
         # lining between joints then rose 3.4 sd (2.3 pooled; the joints 10-13)
-        variance = uniform_filter1d(variance, 5, mode="nearest")
+        variance = pooled_variance(variance, 5)
     return {**profile, "fitness": (1.0 - cost.mean(axis=1)).tolist(), "noise": np.sqrt(variance).tolist()}
+
+
+def pooled_variance(variance: np.ndarray, width: int) -> np.ndarray:
+    """The running mean of ``variance`` over ``width`` neighbouring samples, never below 0: a
+    running mean subtracts sums, and where the variance is 0 beside larger values it left
+    -2e-18, whose square root (the noise) was NaN, so a peak there was never significant."""
+    return np.maximum(uniform_filter1d(variance, width, mode="nearest"), 0.0)
 
 
 def edge_costs(target: PlaneTarget, tree: cKDTree, pts: np.ndarray, axis: np.ndarray, ts: np.ndarray,

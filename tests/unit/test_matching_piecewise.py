@@ -22,6 +22,7 @@ from railtraj.matching.piecewise import (
     edge_profile,
     fit_curve,
     piecewise_fit,
+    pooled_variance,
     reference_position,
     reference_times,
     reference_tree,
@@ -439,6 +440,14 @@ def test_the_edge_profile_shows_the_ring_joints_the_fitness_profile_misses():
     assert len(shift) >= 3 and movable.all()
     np.testing.assert_allclose(shift, lattice, atol=0.05)  # every peak is a ring joint away
     assert np.isin([-1.25, 0.0, 1.25], np.round(lattice, 2)).all()  # the truth (-1.25) among them
+
+
+def test_pooled_variance_is_never_negative_where_it_is_zero_beside_larger_values():
+    """A running mean of zeros after larger values leaves tiny negatives (their sqrt is NaN)."""
+    variance = np.r_[np.random.default_rng(0).random(50) * 1e-3 + 1e-2, np.zeros(50)]
+    pooled = pooled_variance(variance, 5)
+    assert np.isfinite(np.sqrt(pooled)).all()
+    np.testing.assert_allclose(pooled[10:40], variance[10:40], atol=1e-3)  # a mean of its neighbours
 
 
 @pytest.mark.parametrize("across", [True, False])
