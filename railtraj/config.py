@@ -43,8 +43,9 @@ class PipelineConfig:
     # where the along-track chains put two runs further apart than that, their tile pairs are
     # matched again within the distance they need, up to this (m; at most max_misalignment_m: never)
     max_widened_m: float = 6.0
-    # three runs or more matched to a reference whose GNSS the sd check finds biased: where its
-    # chains resolve less of a run pair's track than this share, the other runs' pairs are matched too (0: never)
+    # three runs or more matched to a reference: where its chains resolve less of a run pair's track
+    # than this share, and its GNSS is found biased or another of its run pairs resolves this share,
+    # the other runs' pairs are matched too (0: never)
     other_pairs_below: float = 0.5
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution

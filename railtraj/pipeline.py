@@ -189,7 +189,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             clock["widened"] = time.perf_counter() - t0
         coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                        options.alongtrack.resolved_sd)
-        unresolved = _reference_unresolved(coverage, before_chains, survey, options)
+        unresolved, why = _reference_unresolved(coverage, before_chains, survey, options)
         if unresolved:
             t0 = time.perf_counter()
             ref = _reference(survey, options)
@@ -204,7 +204,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                            options.alongtrack.resolved_sd)
             tiles_reused, pairs_reused = tiles_reused + more_tiles, pairs_reused + more
-            along_notes.append(_other_pairs_note(unresolved, len(others), options))
+            along_notes.append(_other_pairs_note(unresolved, why, len(others), options))
             clock["other_pairs"] = time.perf_counter() - t0
         along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach), coverage_note]
     if cache:  # (after every pass: a resumed run looks up the widened and the other pairs last)
@@ -280,37 +280,49 @@ def _reference(survey: Survey, options: PipelineOptions) -> str:
 
 
 def _reference_unresolved(coverage: dict[str, dict] | None, checked: SdCheck | None, survey: Survey,
-                          options: PipelineOptions) -> dict:
-    """In a survey of three runs or more matched to a reference whose reported sd the check
-    before the chains widened (``checked``: GNSS biased), the reference's run pairs
+                          options: PipelineOptions) -> tuple[dict, str]:
+    """In a survey of three runs or more matched to a reference, the reference's run pairs
     (``"run_a~run_b"``: share) whose offset the chains resolved along less of the track than
-    ``pipeline.other_pairs_below``: there the other runs' tile pairs are matched too.
+    ``pipeline.other_pairs_below``, where the other runs' tile pairs are to be matched too, and
+    why (``{}, ""`` where not): the check before the chains widened the reference's reported sd
+    (GNSS biased), or another of its run pairs resolved that share or more.
 
     The chains are anchored where the runs report a small sd, at the portals. Where multipath
     biases the reference run at its portals and the check widens its sd there, none of its
     chains is anchored, though the other runs, good at theirs, are: a held-out portal survey
     (sleepers 0.6 m, 1.3 times the speed, run a biased at both portals) resolved its run pairs
     over 67 and 69 of 296 m and left the runs 0.31 / 0.52, 0.24 / 0.41 and 0.34 / 0.59 m apart;
-    with run b~c matched too, b~c resolved over 201 m, 0.017 / 0.050 m. Not where a featureless
-    lining leaves the chains unresolved (the reference's sd stands): on held-out feature_poor
-    1056 and 1057 the other pairs, unresolved too, moved run pairs by -2 to +4 cm RMS, as many
-    apart as together."""
+    with run b~c matched too, b~c resolved over 201 m, 0.017 / 0.050 m.
+
+    Where another run is placed along the track and this one is not, run b~c carries c's
+    placement over to b (``d_ab = d_ac - d_bc``, and the chains resolve every run pair jointly):
+    held-out thesis at heading 0, sleepers 0.6 m, three runs, run a~b resolved 26 % and a~c
+    100 %; with b~c matched, 0.233 / 0.425 -> 0.015 / 0.070 m inter-run. Not where every one of
+    the reference's run pairs resolves little for want of features (the reference's sd stands):
+    on held-out feature_poor 1056 and 1057 (a~b 13 %, a~c 18 %) the other pairs, unresolved too,
+    moved run pairs by -2 to +4 cm RMS, as many apart as together."""
     if coverage is None or options.pairs != "reference" or len(survey.runs) < 3 or options.other_pairs_below <= 0:
-        return {}
+        return {}, ""
     ref = _reference(survey, options)
-    if checked is None or ref not in checked.widening:
-        return {}
-    return {key: c["share"] for key, c in coverage.items()
-            if ref in key.split("~") and c["share"] < options.other_pairs_below}
+    shares = {key: c["share"] for key, c in coverage.items() if ref in key.split("~")}
+    low = {key: share for key, share in shares.items() if share < options.other_pairs_below}
+    if not low:
+        return {}, ""
+    if checked is not None and ref in checked.widening:
+        return low, "the reference run's GNSS disagrees with the other runs' where it anchors the chains"
+    placed = sorted(key for key, share in shares.items() if share >= options.other_pairs_below)
+    if placed:
+        return low, f"{', '.join(placed)} resolved more: the other runs matched to each other carry it over"
+    return {}, ""
 
 
-def _other_pairs_note(unresolved: dict[str, float], n_pairs: int, options: PipelineOptions) -> str:
+def _other_pairs_note(unresolved: dict[str, float], why: str, n_pairs: int, options: PipelineOptions) -> str:
     """The warning that the other runs' tile pairs were matched, and why."""
     shares = ", ".join(f"{key} {share:.0%}" for key, share in sorted(unresolved.items()))
-    note = (f"along-track: the reference run's GNSS disagrees with the other runs' where it anchors the chains, "
-            f"which resolved {shares} of the track, less than {options.other_pairs_below:.0%} "
-            f"(pipeline.other_pairs_below); the {n_pairs} tile pairs between the other runs were matched too, "
-            "and every run pair resolved jointly (pipeline=multirun always does)")
+    note = (f"along-track: the reference run's chains resolved {shares} of the track, less than "
+            f"{options.other_pairs_below:.0%} (pipeline.other_pairs_below), and {why}; the {n_pairs} tile pairs "
+            "between the other runs were matched too, and every run pair resolved jointly "
+            "(pipeline=multirun always does)")
     log.warning(note)
     return note
 

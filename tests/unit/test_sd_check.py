@@ -427,26 +427,31 @@ def _moved_across(o: TileOffset, metres: float) -> TileOffset:
     return TileOffset(o.run_a, o.run_b, o.tile_a, o.tile_b, o.d - [0.0, metres, 0.0], o.cov, o.inliers, o.status, ties, o.info)
 
 
-@pytest.mark.parametrize(("biased_runs", "runs", "matched"), [
-    (("run_a",), ("run_a", "run_b", "run_c"), {"run_a~run_b": 0.2}),
-    (("run_b",), ("run_a", "run_b", "run_c"), {}),  # the reference's GNSS holds: a plain lining
-    (("run_a",), ("run_a", "run_b"), {}),  # no other run pair to match
+@pytest.mark.parametrize(("biased_runs", "runs", "shares", "matched"), [
+    (("run_a",), ("run_a", "run_b", "run_c"), (0.2, 0.3), {"run_a~run_b": 0.2, "run_a~run_c": 0.3}),
+    (("run_b",), ("run_a", "run_b", "run_c"), (0.2, 0.3), {}),  # the reference's GNSS holds: a plain lining
+    (("run_b",), ("run_a", "run_b", "run_c"), (0.2, 0.9), {"run_a~run_b": 0.2}),  # run c is placed: b~c carries it
+    (("run_a",), ("run_a", "run_b"), (0.2,), {}),  # no other run pair to match
 ])
-def test_the_other_runs_pairs_are_matched_where_a_biased_reference_anchors_little(biased_runs, runs, matched):
+def test_the_other_runs_pairs_are_matched_where_the_reference_anchors_little_and_they_can_help(
+        biased_runs, runs, shares, matched):
     """The global pipeline matches every run to the reference only, and the chains are anchored
     where the runs report a small sd. Where the check finds the reference's GNSS biased (held-out
     portal survey: run a at both portals) its chains resolve little, and the tile pairs between
-    the other runs are matched too; not where the reference holds and the chains resolve little
-    for want of features (that moved feature-poor surveys' run pairs as much apart as together)."""
+    the other runs are matched too; so too where one run pair resolves little and another much
+    (b~c carries c's placement over to b); not where the reference holds and all its chains
+    resolve little for want of features (that moved feature-poor surveys' run pairs as much apart
+    as together)."""
     from railtraj.pipeline import PipelineOptions, _reference_unresolved
 
     trajs, offsets, _ = _survey(runs=runs, biased_runs=biased_runs)
     checked = check_reported_sd(trajs, offsets)
     assert set(biased_runs) <= set(checked.widening)  # (of two runs, either may be the biased one)
-    coverage = {f"run_a~{r}": {"share": share} for r, share in zip(runs[1:], (0.2, 0.9), strict=False)}
+    coverage = {f"run_a~{r}": {"share": share} for r, share in zip(runs[1:], shares, strict=True)}
     survey = SimpleNamespace(runs=dict.fromkeys(runs))
-    assert _reference_unresolved(coverage, checked, survey, PipelineOptions()) == matched
-    assert _reference_unresolved(coverage, checked, survey, PipelineOptions(other_pairs_below=0.0)) == {}
+    unresolved, why = _reference_unresolved(coverage, checked, survey, PipelineOptions())
+    assert unresolved == matched and bool(why) == bool(matched)
+    assert _reference_unresolved(coverage, checked, survey, PipelineOptions(other_pairs_below=0.0)) == ({}, "")
 
 
 def _pairs_fixed_by_the_chain(trajs: dict[str, Trajectory], window: float = 5.0) -> list[TileOffset]:
