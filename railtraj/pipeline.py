@@ -299,7 +299,7 @@ def _reference_unresolved(coverage: dict[str, dict] | None, checked: SdCheck | N
     held-out thesis at heading 0, sleepers 0.6 m, three runs, run a~b resolved 26 % and a~c
     100 %; with b~c matched, 0.233 / 0.425 -> 0.015 / 0.070 m inter-run. Not where every one of
     the reference's run pairs resolves little for want of features (the reference's sd stands):
-    on held-out feature_poor 1056 and 1057 (a~b 13 %, a~c 18 %) the other pairs, unresolved too,
+    on held-out feature_poor 1056 (a~b 13 %, a~c 18 %) and 1057 the other pairs, unresolved too,
     moved run pairs by -2 to +4 cm RMS, as many apart as together."""
     if coverage is None or options.pairs != "reference" or len(survey.runs) < 3 or options.other_pairs_below <= 0:
         return {}, ""
