@@ -200,8 +200,9 @@ def resolve_along_track(offsets: list[TileOffset], trajectories: dict[str, Traje
     out, report = list(offsets), []
     chains: dict[tuple[str, str], list[Pair]] = {}
     travelled = {r: metres_travelled(t) for r, t in trajectories.items()}
+    least_sd = {r: _least_horizontal_sd(t) for r, t in trajectories.items()}
     for k, o in enumerate(offsets):
-        pair = _candidates(k, o, trajectories, travelled, options)
+        pair = _candidates(k, o, trajectories, travelled, least_sd, options)
         if isinstance(pair, Pair):
             chains.setdefault((o.run_a, o.run_b), []).append(pair)
         elif pair == NO_EVIDENCE:  # every shift fits alike: observed where the trajectories say
@@ -358,7 +359,8 @@ def _near(curves: list[Curve], p: np.ndarray, radius: float) -> list[Curve]:
 
 
 def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
-                travelled: dict[str, np.ndarray], options: AlongTrackOptions) -> Pair | str | None:
+                travelled: dict[str, np.ndarray], least_sd: dict[str, float | None],
+                options: AlongTrackOptions) -> Pair | str | None:
     """The pair's alias candidates; :data:`NO_EVIDENCE` if its profile shows no peak at all (it
     fits alike at every shift); None if it has no along-track fit to choose from."""
     pw, prof = o.info.get("piecewise"), o.info.get("alias_profile")
@@ -407,7 +409,8 @@ def _candidates(index: int, o: TileOffset, trajectories: dict[str, Trajectory],
                 and ("windows" not in pw or _along_windows(pw["windows"]) >= 2), movable=movable, period=period,
                 rate_var=_rate_variance(pw, options), width=width, lone_mark=lone_mark, profile_ends=ends,
                 trains=() if lone_mark else trains,
-                end_rates=() if _degenerate_fit(o) else _end_rates(pw, s, rate, sign, traj_b, travelled[o.run_b], options))
+                end_rates=() if _degenerate_fit(o) else _end_rates(pw, s, rate, sign, traj_b, travelled[o.run_b],
+                                                                         least_sd[o.run_b], options))
 
 
 def _on_edges(found: Peaks, edge_shift: np.ndarray, step: float) -> np.ndarray:
@@ -635,7 +638,7 @@ def _curve_cov(pw: dict, options: AlongTrackOptions) -> tuple[np.ndarray, np.nda
 
 
 def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory, travelled_b: np.ndarray,
-               options: AlongTrackOptions) -> tuple[tuple[float, float, float], ...]:
+               least_sd_b: float | None, options: AlongTrackOptions) -> tuple[tuple[float, float, float], ...]:
     """The pair's drift rate at both ends of the windows its curve was fitted to, where that curve
     is a parabola (4 windows or more spanning ``drift_rate_span``): ``(s, rate, variance)`` per end,
     ``s`` in metres along run b's track (the pair is at ``s``, its axis ``sign`` along run b's
@@ -660,7 +663,7 @@ def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory,
     x, cov = _curve_cov(pw, options)
     bend = 2.0 * float(pw["curvature_mm_per_m2"][0]) / 1000.0  # d rate / d x along the pair's axis
     ends_at = np.interp(s + sign * np.array([x.min(), x.max()]), travelled_b, traj_b.time)
-    inflate = PORTAL_RATE_VARIANCE if _across_portal(traj_b, ends_at) else 1.0
+    inflate = PORTAL_RATE_VARIANCE if _across_portal(traj_b, ends_at, least_sd_b) else 1.0
     ends = []
     for end in (x.min(), x.max()):
         slope = np.array([0.0, 1.0, 2.0 * end])  # the parabola's slope at ``end``
@@ -668,14 +671,19 @@ def _end_rates(pw: dict, s: float, rate: float, sign: float, traj_b: Trajectory,
     return tuple(sorted(ends))
 
 
-def _across_portal(traj: Trajectory, times: np.ndarray) -> bool:
+def _least_horizontal_sd(traj: Trajectory) -> float | None:
+    """The run's least reported horizontal sd (where its GNSS is best); None where it reports none.
+    Once per run: over a 1 h run at 200 Hz it takes 16 ms, and every pair with end rates asks."""
+    return None if traj.sd is None else float(np.hypot(traj.sd[:, 0], traj.sd[:, 1]).min())
+
+
+def _across_portal(traj: Trajectory, times: np.ndarray, least: float | None) -> bool:
     """Whether the run passes a portal between ``times``: at one its horizontal sd is within
-    :data:`OPEN_SKY_SD` times its least (GNSS), at the other more than :data:`MAX_SD_CHANGE` times
-    that (False where the run reports no sd)."""
-    if traj.sd is None:
+    :data:`OPEN_SKY_SD` times its ``least`` (:func:`_least_horizontal_sd`; GNSS), at the other more
+    than :data:`MAX_SD_CHANGE` times that (False where the run reports no sd)."""
+    if traj.sd is None or least is None:
         return False
     horizontal = np.hypot(*traj.sd_at(times)[:, :2].T)
-    least = float(np.hypot(traj.sd[:, 0], traj.sd[:, 1]).min())
     return bool(horizontal.min() <= OPEN_SKY_SD * least and horizontal.max() > MAX_SD_CHANGE * horizontal.min())
 
 

@@ -1100,7 +1100,7 @@ def test_a_pair_across_a_portal_gives_its_end_rates_at_twice_their_sd(portal_at,
     follows: a pair whose windows run from the open sky (the run's least sd) into the tunnel
     (more than twice that) gives the chain its end rates at twice their sd; inside the tunnel
     the same pair gives them at their own."""
-    from railtraj.alongtrack import _end_rates
+    from railtraj.alongtrack import _end_rates, _least_horizontal_sd
 
     t = np.arange(0.0, 30.0, 0.05)
     s_travelled = 10.0 * t  # 10 m/s
@@ -1110,8 +1110,9 @@ def test_a_pair_across_a_portal_gives_its_end_rates_at_twice_their_sd(portal_at,
                       np.tile([0.0, 0.0, 90.0], (len(t), 1)), sd, run_id="run_b")
     pw = {"windows": [[x, 0.0, 0.0, 0.0, 1.0, 1.0] for x in np.linspace(-10, 10, 5)],
           "curvature_mm_per_m2": [0.5, 0.0, 0.0], "window_resid_sd_mm": [5.0, 3.0, 3.0]}
-    ends = _end_rates(pw, 200.0, 0.01, 1.0, traj, s_travelled, AlongTrackOptions())
-    plain = _end_rates(pw, 200.0, 0.01, 1.0, replace(traj, sd=None), s_travelled, AlongTrackOptions())
+    ends = _end_rates(pw, 200.0, 0.01, 1.0, traj, s_travelled, _least_horizontal_sd(traj), AlongTrackOptions())
+    no_sd = replace(traj, sd=None)
+    plain = _end_rates(pw, 200.0, 0.01, 1.0, no_sd, s_travelled, _least_horizontal_sd(no_sd), AlongTrackOptions())
     assert [e[0] for e in ends] == pytest.approx([190.0, 210.0])
     assert [e[1] for e in ends] == pytest.approx([0.0, 0.02])  # 10 mm/m, bending 1 mm/m per metre
     ratio = np.array([e[2] for e in ends]) / np.array([e[2] for e in plain])
