@@ -84,6 +84,19 @@ class TileCache:
             parts.append(xyz)
         return replace(tile, context=np.vstack(parts) if parts else np.zeros((0, 3)))
 
+    def read_joined(self, path: str | os.PathLike, run_id: str, around: tuple[os.PathLike, ...],
+                    bbox: tuple[np.ndarray, np.ndarray], reach: float) -> PointTile:
+        """As :meth:`read_with_context`, but the points inside ``bbox`` of every tile ``around``
+        are the tile's own (named as the tile at ``path``): the run's whole cloud in the box,
+        whichever tile holds it, and its context beyond the box."""
+        own = self.read_with_context(path, run_id, around, bbox, reach)
+        parts = [own] + [self.read(p, run_id=run_id, bbox=bbox) for p in around if os.fspath(p) != os.fspath(path)]
+        lo, hi = (np.asarray(corner, float) for corner in bbox)
+        outside = ~((own.context >= lo) & (own.context <= hi)).all(axis=1)
+        intensity = None if any(t.intensity is None for t in parts) else np.concatenate([t.intensity for t in parts])
+        return replace(own, xyz=np.vstack([t.xyz for t in parts]), gps_time=np.concatenate([t.gps_time for t in parts]),
+                       intensity=intensity, context=own.context[outside])
+
     def _store(self, key: tuple, tile: PointTile) -> None:
         size = tile_bytes(tile)
         if size > self.budget:
