@@ -71,6 +71,8 @@ log = logging.getLogger(__name__)
 
 #: points per tile pair kept to measure cloud-to-cloud distances before and after correction
 C2C_SAMPLE = 20_000
+#: statuses of a matched pair (the others are refusals: a pair refused alone may be matched again)
+MATCHED = ("ok", "ambiguous", "degenerate")
 
 
 @dataclass
@@ -213,7 +215,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
 
     t0 = time.perf_counter()
     control, notes = observe_control(survey, trajectories, point_spacing=median_point_spacing(resolved)[0])
-    notes = survey_notes + notes + [n for n in [*along_notes, sparse_profiles_note(resolved)] if n]
+    notes = survey_notes + notes + [n for n in [*along_notes, sparse_profiles_note(resolved),
+                                                 joined_tiles_note(resolved)] if n]
     clock["control"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -550,8 +553,9 @@ def match_pair(job: tuple) -> PairResult:
         joined = replace(tiles.read_joined(pair.tile_a.path, pair.run_a, pair.context_a, (lo, hi), CONTEXT_M),
                          travel=travel_a)
         again = stages.matcher.match(joined, kp_a, tile_b, kp_b, None)
-        if again.status in ("ok", "ambiguous", "degenerate"):  # else the first refusal stands
-            tile_a, offset = joined, replace(again, info=dict(again.info, joined_tiles=len(pair.context_a)))
+        if again.status in MATCHED:  # else the first refusal stands
+            tile_a, offset = joined, again
+        offset = replace(offset, info=dict(offset.info, joined_tiles=len(pair.context_a), joined_status=again.status))
     seconds["match"] = time.perf_counter() - t
 
     names = dict(run_a=pair.run_a, run_b=pair.run_b, tile_a=pair.tile_a.path.name, tile_b=pair.tile_b.path.name)
@@ -580,6 +584,21 @@ def _misfit_for_its_tile(offset: TileOffset, pair: TilePair) -> bool:
     runs 1.7-2.3 m apart across, had 7 of 25 pairs below the fitness needed at every vote
     peak (run b's points 0.10-0.27 on run a's surface) and resolved 43 % of its length."""
     return offset.status == "no_overlap" and "vote_peaks" in offset.info and len(pair.context_a) > 1
+
+
+def joined_tiles_note(offsets: list[TileOffset]) -> str | None:
+    """A note (and a warning) when pairs were matched again against run a's neighbouring tiles
+    too (:func:`_misfit_for_its_tile`): how many, and how many then matched."""
+    tried = [o for o in offsets if "joined_tiles" in o.info]
+    if not tried:
+        return None
+    matched = [o for o in tried if o.info["joined_status"] in MATCHED]
+    note = (f"{len(tried)} tile pair(s) found no fit against run a's tile (no_overlap; e.g. {tried[0].tile_a} "
+            f"{tried[0].run_a}~{tried[0].run_b}) and were matched again against run a's points in its neighbouring "
+            f"tiles too, {len(matched)} of them then matched: the tile grid cuts the tunnel lengthwise there and the "
+            "runs are far apart across")
+    log.warning(note)
+    return note
 
 
 def _overlap_times(pair: TilePair, tile_a: PointTile, tile_b: PointTile) -> dict[str, float]:

@@ -14,7 +14,7 @@ from railtraj.io.las import read_header, read_tile, write_tile
 from railtraj.io.survey import find_overlaps, with_context
 from railtraj.matching.objects import CONTEXT_M
 from railtraj.matching.synthetic import second_acquisition
-from railtraj.pipeline import PipelineOptions, detect_tile, match_pair
+from railtraj.pipeline import PipelineOptions, detect_tile, joined_tiles_note, match_pair
 from railtraj.plugins import registry
 from railtraj.sim import generate
 from railtraj.sim.scenarios import get_scenario
@@ -76,3 +76,5 @@ def test_a_pair_cut_lengthwise_is_matched_against_run_as_cloud_in_the_next_tile_
     np.testing.assert_allclose(offset.d[1:], -SHIFT[1:], atol=0.03)  # across and up
     if offset.status == "ok":
         assert abs(offset.d[0] + SHIFT[0]) < 0.03
+    assert "1 tile pair(s) found no fit against run a's tile" in joined_tiles_note([offset])
+    assert "1 of them then matched" in joined_tiles_note([offset])
