@@ -104,6 +104,7 @@ def run_job(cfg: DictConfig, out_dir: Path, sweep_dir: Path | None = None) -> No
                               pair_part_m=pipe.pair_part_m,
                               max_misalignment_m=pipe.max_misalignment_m, max_widened_m=pipe.max_widened_m,
                               other_pairs_below=pipe.other_pairs_below,
+                              other_pairs_below_biased=pipe.other_pairs_below_biased,
                               tile_cache_gb=pipe.tile_cache_gb,
                               crs=cfg.crs, grid_dir=grid_dir,
                               sbet_crs=sbet_crs,

@@ -47,6 +47,9 @@ class PipelineConfig:
     # than this share, and its GNSS is found biased or another of its run pairs resolves this share,
     # the other runs' pairs are matched too (0: never)
     other_pairs_below: float = 0.5
+    # ... and where the sd check finds the reference's GNSS biased, below this share (1.0: any run
+    # pair not resolved along its whole track; 0: never)
+    other_pairs_below_biased: float = 1.0
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
     sd_check: SdCheckOptions = field(default_factory=SdCheckOptions)  # reported sd against the runs' disagreement

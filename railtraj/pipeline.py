@@ -100,6 +100,7 @@ class PipelineOptions:
     max_misalignment_m: float = 3.0
     max_widened_m: float = 6.0
     other_pairs_below: float = 0.5
+    other_pairs_below_biased: float = 1.0
     crs: str = "EPSG:27700"
     grid_dir: str | None = None
     sbet_crs: str | None = None          # SBET and anchors frame; None: railtraj.crs default
@@ -206,7 +207,7 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                            options.alongtrack.resolved_sd)
             tiles_reused, pairs_reused = tiles_reused + more_tiles, pairs_reused + more
-            along_notes.append(_other_pairs_note(unresolved, why, len(others), options))
+            along_notes.append(_other_pairs_note(unresolved, why, len(others)))
             clock["other_pairs"] = time.perf_counter() - t0
         along_notes += [fitted_direction_note(resolved), beyond_reach_note(reach), coverage_note]
     if cache:  # (after every pass: a resumed run looks up the widened and the other pairs last)
@@ -304,26 +305,28 @@ def _reference_unresolved(coverage: dict[str, dict] | None, checked: SdCheck | N
     the reference's run pairs resolves little for want of features (the reference's sd stands):
     on held-out feature_poor 1056 (a~b 13 %, a~c 18 %) and 1057 the other pairs, unresolved too,
     moved run pairs by -2 to +4 cm RMS, as many apart as together."""
-    if coverage is None or options.pairs != "reference" or len(survey.runs) < 3 or options.other_pairs_below <= 0:
+    if coverage is None or options.pairs != "reference" or len(survey.runs) < 3:
         return {}, ""
     ref = _reference(survey, options)
     shares = {key: c["share"] for key, c in coverage.items() if ref in key.split("~")}
-    low = {key: share for key, share in shares.items() if share < options.other_pairs_below}
-    if not low:
-        return {}, ""
     if checked is not None and ref in checked.widening:
-        return low, "the reference run's GNSS disagrees with the other runs' where it anchors the chains"
-    placed = sorted(key for key, share in shares.items() if share >= options.other_pairs_below)
-    if placed:
-        return low, f"{', '.join(placed)} resolved more: the other runs matched to each other carry it over"
+        below = options.other_pairs_below_biased
+        low = {key: share for key, share in shares.items() if share < below}
+        return (low, f"less than {below:.0%} (pipeline.other_pairs_below_biased) where the reference run's GNSS "
+                     "disagrees with the other runs' where it anchors the chains") if low else ({}, "")
+    below = options.other_pairs_below
+    low = {key: share for key, share in shares.items() if share < below}
+    placed = sorted(key for key, share in shares.items() if share >= below)
+    if low and placed:
+        return low, (f"less than {below:.0%} (pipeline.other_pairs_below) where {', '.join(placed)} resolved more: "
+                     "the other runs matched to each other carry it over")
     return {}, ""
 
 
-def _other_pairs_note(unresolved: dict[str, float], why: str, n_pairs: int, options: PipelineOptions) -> str:
+def _other_pairs_note(unresolved: dict[str, float], why: str, n_pairs: int) -> str:
     """The warning that the other runs' tile pairs were matched, and why."""
     shares = ", ".join(f"{key} {share:.0%}" for key, share in sorted(unresolved.items()))
-    note = (f"along-track: the reference run's chains resolved {shares} of the track, less than "
-            f"{options.other_pairs_below:.0%} (pipeline.other_pairs_below), and {why}; the {n_pairs} tile pairs "
+    note = (f"along-track: the reference run's chains resolved {shares} of the track, {why}; the {n_pairs} tile pairs "
             "between the other runs were matched too, and every run pair resolved jointly "
             "(pipeline=multirun always does)")
     log.warning(note)
