@@ -44,11 +44,11 @@ class PipelineConfig:
     # matched again within the distance they need, up to this (m; at most max_misalignment_m: never)
     max_widened_m: float = 6.0
     # three runs or more matched to a reference: where its chains resolve less of a run pair's track
-    # than this share, and its GNSS is found biased or another of its run pairs resolves this share,
-    # the other runs' pairs are matched too (0: never)
+    # than this share and another of its run pairs resolves this share or more, the other runs'
+    # pairs are matched too (0: never)
     other_pairs_below: float = 0.5
-    # ... and where the sd check finds the reference's GNSS biased, below this share (1.0: any run
-    # pair not resolved along its whole track; 0: never)
+    # ... and where the sd check finds the reference's GNSS biased, wherever one of its run pairs
+    # resolves less than this share (1.0: is not resolved along its whole track; 0: never)
     other_pairs_below_biased: float = 1.0
     tile_cache_gb: float = 1.0         # GiB of whole tiles kept between detection and matching (shared by the workers)
     alongtrack: AlongTrackOptions = field(default_factory=AlongTrackOptions)  # joint alias resolution
