@@ -316,18 +316,16 @@ def _reference_unresolved(coverage: dict[str, dict] | None, checked: SdCheck | N
         return {}, ""
     ref = _reference(survey, options)
     shares = {key: c["share"] for key, c in coverage.items() if ref in key.split("~")}
-    if checked is not None and ref in checked.widening:
-        below = options.other_pairs_below_biased
-        low = {key: share for key, share in shares.items() if share < below}
-        return (low, f"less than {below:.0%} (pipeline.other_pairs_below_biased), and the reference run's GNSS "
-                     "disagrees with the other runs' where it anchors the chains") if low else ({}, "")
-    below = options.other_pairs_below
+    biased = checked is not None and ref in checked.widening
+    name = "other_pairs_below_biased" if biased else "other_pairs_below"
+    below = getattr(options, name)
     low = {key: share for key, share in shares.items() if share < below}
     placed = sorted(key for key, share in shares.items() if share >= below)
-    if low and placed:
-        return low, (f"less than {below:.0%} (pipeline.other_pairs_below), and {', '.join(placed)} resolved more: "
-                     "the other runs matched to each other carry it over")
-    return {}, ""
+    if not low or not (biased or placed):
+        return {}, ""
+    because = ("the reference run's GNSS disagrees with the other runs' where it anchors the chains" if biased
+               else f"{', '.join(placed)} resolved more: the other runs matched to each other carry it over")
+    return low, f"less than {below:.0%} (pipeline.{name}), and {because}"
 
 
 def _other_pairs_note(unresolved: dict[str, float], why: str, n_pairs: int) -> str:

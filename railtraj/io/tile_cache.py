@@ -73,15 +73,9 @@ class TileCache:
         run's points within ``reach`` (m, in plan) of the box that the crop does not hold, read
         from the tiles ``around`` (its own among them, beyond the box). The box reaches past the
         tile's edge, and the next tile's points there are context too."""
-        lo, hi = (np.asarray(corner, float) for corner in bbox)
-        tile = self.read(path, run_id=run_id, bbox=(lo, hi))
-        grow = np.array([reach, reach, 0.0])
-        parts = []
-        for other in around:
-            xyz = self.read(other, run_id=run_id, bbox=(lo - grow, hi + grow)).xyz
-            if os.fspath(other) == os.fspath(path):
-                xyz = xyz[~((xyz >= lo) & (xyz <= hi)).all(axis=1)]
-            parts.append(xyz)
+        tile = self.read(path, run_id=run_id, bbox=bbox)
+        parts = [near.xyz[~inside] if os.fspath(other) == os.fspath(path) else near.xyz
+                 for other, near, inside in self._near(run_id, around, bbox, reach)]
         return replace(tile, context=np.vstack(parts) if parts else np.zeros((0, 3)))
 
     def read_joined(self, path: str | os.PathLike, run_id: str, around: tuple[os.PathLike, ...],
@@ -89,13 +83,25 @@ class TileCache:
         """As :meth:`read_with_context`, but the points inside ``bbox`` of every tile ``around``
         are the tile's own (named as the tile at ``path``): the run's whole cloud in the box,
         whichever tile holds it, and its context beyond the box."""
-        own = self.read_with_context(path, run_id, around, bbox, reach)
-        parts = [own] + [self.read(p, run_id=run_id, bbox=bbox) for p in around if os.fspath(p) != os.fspath(path)]
-        lo, hi = (np.asarray(corner, float) for corner in bbox)
-        outside = ~((own.context >= lo) & (own.context <= hi)).all(axis=1)
+        parts, context = [self.read(path, run_id=run_id, bbox=bbox)], []
+        for other, near, inside in self._near(run_id, around, bbox, reach):
+            context.append(near.xyz[~inside])
+            if os.fspath(other) != os.fspath(path):
+                parts.append(near.subset(inside))
         intensity = None if any(t.intensity is None for t in parts) else np.concatenate([t.intensity for t in parts])
-        return replace(own, xyz=np.vstack([t.xyz for t in parts]), gps_time=np.concatenate([t.gps_time for t in parts]),
-                       intensity=intensity, context=own.context[outside])
+        return replace(parts[0], xyz=np.vstack([t.xyz for t in parts]),
+                       gps_time=np.concatenate([t.gps_time for t in parts]), intensity=intensity,
+                       context=np.vstack(context) if context else np.zeros((0, 3)))
+
+    def _near(self, run_id: str, around: tuple[os.PathLike, ...], bbox: tuple[np.ndarray, np.ndarray],
+              reach: float):
+        """Each tile of ``around`` read within ``reach`` (m, in plan) of ``bbox``, and which of
+        those points lie inside the box: ``(path, tile, inside)``."""
+        lo, hi = (np.asarray(corner, float) for corner in bbox)
+        grow = np.array([reach, reach, 0.0])
+        for other in around:
+            near = self.read(other, run_id=run_id, bbox=(lo - grow, hi + grow))
+            yield other, near, ((near.xyz >= lo) & (near.xyz <= hi)).all(axis=1)
 
     def _store(self, key: tuple, tile: PointTile) -> None:
         size = tile_bytes(tile)
