@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from railtraj.data import Keypoints, PointTile, Ties, TileOffset
 from railtraj.matching.refine import Fit, crop, point_to_plane, sample
@@ -48,19 +49,15 @@ def search_peaks(target: PlaneTarget, moving: np.ndarray, center: np.ndarray, ha
     a portal's open cutting gave 120-180 keypoints a tile and vote peaks of 11-13 pairs over a
     background of 30 %, none near the truth, so its pairs were ``no_overlap``. Yet the clouds
     fitted there by 0.73 at the true offset, the grid's best; an alias 0.67 m along fitted by
-    0.65. The points are those :func:`check_peaks` would fit at ``center``; one KD-tree query per
-    block of shifts."""
+    0.65. The points are those :func:`check_peaks` would fit at ``center``; their fitness at every
+    shift from one pair search (:func:`grid_fitness`)."""
     g = np.arange(-half, half + step / 2, step)
     shifts = np.asarray(center, float) + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     pts = sample(moving, points, seed=3)
     pts = pts[target.inside(pts + center, 0.3)]  # as check_peaks crops them
     if len(pts) == 0:
         return []
-    fitness = np.empty(len(shifts))
-    block = max(1, 200_000 // len(pts))
-    for i in range(0, len(shifts), block):  # blocks bound the memory: a few dozen per pair
-        idx, _ = target.nearest((pts[:, None, :] + shifts[None, i:i + block]).reshape(-1, 3), radius)
-        fitness[i:i + block] = (idx >= 0).reshape(len(pts), -1).mean(axis=0)
+    fitness = grid_fitness(target, pts, [float(center[k]) + g for k in range(3)], radius)
     chosen: list[np.ndarray] = []
     for k in np.argsort(-fitness, kind="stable"):
         if len(chosen) == n:
@@ -69,6 +66,53 @@ def search_peaks(target: PlaneTarget, moving: np.ndarray, center: np.ndarray, ha
             chosen.append(shifts[k])
     return [Peak(d, 0) for d in chosen]
 
+
+
+def grid_fitness(target: PlaneTarget, pts: np.ndarray, axes: list[np.ndarray], radius: float) -> np.ndarray:
+    """Share of ``pts`` that fit ``target`` (a voxel centroid nearer than ``radius``) moved by each
+    shift of a grid, its coordinates ``axes`` (three ascending, evenly spaced arrays; the shifts
+    in ``meshgrid(*axes, indexing="ij")`` order): what a KD-tree query of every point at every
+    shift gives, to the bit, from one pair search.
+
+    Every centroid within the radius of a moved point lies within the radius plus the grid's
+    half-diagonal of the point moved to the grid's centre; each such pair fits at the few shifts
+    whose every coordinate lies within the radius of theirs, checked by the sum of squares the
+    KD-tree compares. A 21^3 grid of 500 points: 0.1-0.3 s instead of 2.3-2.7 s (a shift at a
+    time, 4.6 M queries)."""
+    n = [len(a) for a in axes]
+    step = [(a[-1] - a[0]) / (len(a) - 1) if len(a) > 1 else radius for a in axes]
+    centre = np.array([0.5 * (a[0] + a[-1]) for a in axes])
+    reach = radius + 0.5 * float(np.sqrt(sum((a[-1] - a[0]) ** 2 for a in axes)))
+    pairs = cKDTree(pts + centre).sparse_distance_matrix(target.tree, reach * (1 + 1e-9) + 1e-9,
+                                                         output_type="ndarray")
+    owner, c = pairs["i"], target.tree.data[pairs["j"]]
+    p = pts[owner]
+    # per axis the first candidate index: the grid's nearest shifts to the pair's within the radius
+    first = [np.floor((c[:, k] - p[:, k] - axes[k][0]) / step[k] - radius / step[k]).astype(np.int64) - 1
+             for k in range(3)]
+    candidates = [int(np.floor(2 * radius / step[k])) + 3 for k in range(3)]
+
+    def along(k: int, rows: np.ndarray, offset: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Grid index, coordinate difference and within-radius mask of ``rows`` along axis k."""
+        idx = first[k][rows] + offset
+        valid = (idx >= 0) & (idx < n[k])
+        idx = np.clip(idx, 0, n[k] - 1)
+        diff = (p[rows, k] + axes[k][idx]) - c[rows, k]
+        return idx, diff, valid & (np.abs(diff) < radius)
+
+    hit = np.zeros((len(pts), n[0] * n[1] * n[2]), bool)
+    rows0 = np.arange(len(owner))
+    for o0 in range(candidates[0]):
+        i0, d0, ok0 = along(0, rows0, o0)
+        rows1, i0, d0 = rows0[ok0], i0[ok0], d0[ok0]
+        for o1 in range(candidates[1]):
+            i1, d1, ok1 = along(1, rows1, o1)
+            rows2, j0, e0, i1, d1 = rows1[ok1], i0[ok1], d0[ok1], i1[ok1], d1[ok1]
+            for o2 in range(candidates[2]):
+                i2, d2, ok2 = along(2, rows2, o2)
+                ok2 &= e0 * e0 + d1 * d1 + d2 * d2 < radius * radius
+                hit[owner[rows2[ok2]], (j0[ok2] * n[1] + i1[ok2]) * n[2] + i2[ok2]] = True
+    return hit.mean(axis=0)
 
 def alias_profile(target: PlaneTarget, moving: np.ndarray, d: np.ndarray, axis: np.ndarray,
                   ts: np.ndarray, radius: float = 0.05, margin: float = 0.3) -> np.ndarray:
