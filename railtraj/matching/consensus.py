@@ -52,12 +52,13 @@ def search_peaks(target: PlaneTarget, moving: np.ndarray, center: np.ndarray, ha
     0.65. The points are those :func:`check_peaks` would fit at ``center``; their fitness at every
     shift from one pair search (:func:`grid_fitness`)."""
     g = np.arange(-half, half + step / 2, step)
-    shifts = np.asarray(center, float) + np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    axes = [float(c) + g for c in center]
+    shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     pts = sample(moving, points, seed=3)
     pts = pts[target.inside(pts + center, 0.3)]  # as check_peaks crops them
     if len(pts) == 0:
         return []
-    fitness = grid_fitness(target, pts, [float(center[k]) + g for k in range(3)], radius)
+    fitness = grid_fitness(target, pts, axes, radius)
     chosen: list[np.ndarray] = []
     for k in np.argsort(-fitness, kind="stable"):
         if len(chosen) == n:
