@@ -154,6 +154,9 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
             "tiles": sum(len(r.tiles) for r in result.survey.runs.values()),
             "tile_pairs": len(result.pairs),
             "tile_pairs_by_status": statuses,
+            # pairs whose windows fitted run a's points onto run b's, the sparser along the track
+            # (railtraj.matching.resolve.REVERSE_GAP_RATIO)
+            "tile_pairs_reversed": sum(bool(pr.offset.info.get("windows_reversed")) for pr in result.pairs),
             "ties": int(sum(len(t) for t in result.ties)),
             "anchors": anchor_count,
         },

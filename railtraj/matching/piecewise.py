@@ -736,6 +736,27 @@ def piecewise_fit(target: PlaneTarget, ref_xyz: np.ndarray, moving: np.ndarray, 
     windows, off_marks = window_offsets(target, tree, moving, d_start, axis, s, length, marks=marks, **window_options)
     if len(windows) == 0:
         return None
+    return _curve(windows, off_marks, axis, origin, s, marks, from_travel)
+
+
+def reversed_fit(rev: Piecewise, moving: np.ndarray) -> Piecewise:
+    """The curve moving ``moving`` (run b's points) onto run a, from ``rev``: run a's points
+    fitted onto run b's (:func:`piecewise_fit` with the roles swapped). Each window of ``rev``
+    sits where its points land on run b, with the opposite offset; the curve is fitted through
+    them as :func:`piecewise_fit` would. The intensity marks stay with ``rev``'s clouds: the
+    curve has none (its alias test is the geometric one)."""
+    rows = rev.windows
+    landed = rev.origin + rows[:, :1] * rev.axis + rows[:, 1:4]
+    origin = moving.mean(axis=0)
+    windows = np.column_stack([(landed - origin) @ rev.axis, -rows[:, 1:4], rows[:, 5]])
+    windows = windows[np.argsort(windows[:, 0], kind="stable")]
+    return _curve(windows, rev.off_marks, rev.axis, origin, (moving - origin) @ rev.axis, None, rev.axis_from_travel)
+
+
+def _curve(windows: np.ndarray, off_marks: int, axis: np.ndarray, origin: np.ndarray, s: np.ndarray,
+           marks: LazyMarks | None, from_travel: bool) -> Piecewise:
+    """The :class:`Piecewise` through the rows of :func:`window_offsets` for the moving points
+    at along-track positions ``s`` (from ``origin`` along ``axis``)."""
     s_ref = float(np.median(s))
     coefs, cov, used, sd = curve_through(windows, axis, s_ref)
     between = reference_position(s_ref, windows, used)

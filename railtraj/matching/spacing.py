@@ -71,6 +71,14 @@ def tile_sampling(tile: PointTile) -> tuple[float, float]:
     return _samplings(tile.xyz, tile=tile)
 
 
+def profile_gap_ratio(tile: PointTile, other: PointTile) -> float:
+    """How many times further apart ``tile``'s scan profiles lie than ``other``'s (NaN where
+    either gap is not measured): a run driven faster, or scanned slower, samples the track
+    more sparsely."""
+    gap, other_gap = tile_sampling(tile)[0], tile_sampling(other)[0]
+    return gap / other_gap if other_gap > 0 else float("nan")
+
+
 def point_spacing(*tiles: PointTile) -> float:
     """The largest spacing (m) of the points along a profile among ``tiles`` (NaN where none tells)."""
     along = np.array([tile_sampling(t)[1] for t in tiles], float)

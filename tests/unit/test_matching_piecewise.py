@@ -26,6 +26,7 @@ from railtraj.matching.piecewise import (
     reference_position,
     reference_times,
     reference_tree,
+    reversed_fit,
     surface_normals,
     track_axis,
     track_frame,
@@ -231,6 +232,28 @@ def test_reference_position_lies_between_the_windows_the_curve_uses():
     assert reference_position(-8.0, windows, one) == -8.0
     windows[1, 4] = 2  # ... but from a mark, placed to centimetres
     assert reference_position(-8.0, windows, one) == -5.0
+
+
+def test_a_reversed_fit_is_the_curve_of_run_b_where_run_as_windows_land():
+    """Run a's windows fitted onto run b (a dense run a against a sparse run b) give run b's
+    curve: each window where its points land on run b, with the opposite offset. Run b lags
+    1.5 m along a drift of 1 cm/m: read at run a's positions instead, the curve would be 1.5 cm
+    off along the track."""
+    axis = rotation_z(30) @ [1.0, 0.0, 0.0]
+    c0, c1 = np.array([1.5, 0.1, -0.02]), np.array([0.01, 0.002, -0.001])
+    origin_b = np.array([530_010.0, 180_005.0, 20.0])
+    u_b = np.linspace(-10.0, 10.0, 5)  # window centres on run b, along the track
+    true = lambda u: c0[None] + u[:, None] * c1[None]  # noqa: E731 (moves b onto a)
+    p_b = origin_b + u_b[:, None] * axis
+    p_a = p_b + true(u_b)
+    origin_a = origin_b + np.array([0.3, -0.2, 0.0])
+    table = np.column_stack([(p_a - origin_a) @ axis, -true(u_b), np.ones(5), np.ones(5)])
+    rev = Piecewise(np.zeros((3, 3)), axis, origin_a, 0.0, np.eye(3), table, (-12.0, 12.0), np.zeros(3))
+    moving = origin_b + np.linspace(-12.0, 12.0, 241)[:, None] * axis  # run b's points, centred on origin_b
+    fit = reversed_fit(rev, moving)
+    np.testing.assert_allclose(fit.windows[:, 0], u_b, atol=1e-9)
+    np.testing.assert_allclose(fit.at(p_b), true(u_b), atol=1e-9)
+    assert fit.n_used == 5 and fit.marks is None
 
 
 def test_a_fast_trains_windows_find_the_joints_where_the_plain_distance_ripples():

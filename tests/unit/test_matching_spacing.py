@@ -9,6 +9,7 @@ from railtraj.data import PointTile, TileOffset
 from railtraj.matching.spacing import (
     DESIGN_SPACING,
     point_spacing,
+    profile_gap_ratio,
     profile_sampling,
     radius_scale,
     sparse_profiles_note,
@@ -28,6 +29,14 @@ def _profiles(gap: float, rate: float = 250.0, per_profile: int = 500, length: f
 @pytest.mark.parametrize("gap", [0.04, 0.08, 0.16])
 def test_profile_spacing_is_the_gap_between_profiles(gap):
     assert profile_sampling(_profiles(gap))[0] == pytest.approx(gap, rel=0.1)
+
+
+def test_a_faster_runs_profiles_are_as_many_times_further_apart():
+    slow, fast = _profiles(0.02, length=10.0), _profiles(0.08, length=10.0)
+    assert profile_gap_ratio(fast, slow) == pytest.approx(4.0, rel=0.1)
+    assert profile_gap_ratio(slow, fast) == pytest.approx(0.25, rel=0.1)
+    few = PointTile(slow.xyz[:3], slow.gps_time[:3], slow.intensity[:3])  # nothing to measure: NaN
+    assert np.isnan(profile_gap_ratio(fast, few)) and np.isnan(profile_gap_ratio(few, fast))
 
 
 def test_radius_scale_grows_only_beyond_the_design_spacing():

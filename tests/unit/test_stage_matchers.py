@@ -9,6 +9,7 @@ the tunnel at 30 degrees, so nothing may rely on small numbers or an x-aligned t
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,10 +17,15 @@ import pytest
 from railtraj.builtins.iss import PRESETS
 from railtraj.data import PointTile, TileOffset
 from railtraj.errors import ConfigError
+from railtraj.io.las import read_tile
 from railtraj.matching.resolve import MIN_KEYPOINT_TIES
 from railtraj.matching.synthetic import _box, placed, rotation_z, second_acquisition, tunnel_tile
 from railtraj.plugins import registry
 from railtraj.report.sections import pair_reason
+from railtraj.sim import generate
+from railtraj.sim.runs import RunSpec
+from railtraj.sim.scenarios import get_scenario
+from railtraj.sim.track import Alignment
 
 THESIS_SHIFT = np.array([0.5, 1.5, 0.10])
 AXIS = rotation_z(30) @ [1.0, 0.0, 0.0]
@@ -296,3 +302,39 @@ def test_a_widened_matcher_finds_an_offset_beyond_the_window_it_was_built_with(r
     off = wide.match(a, kp_a, b, kp_b)
     assert off.status == "ok" and np.abs(off.d - truth).max() < 0.005, (off.status, off.d - truth)
     assert off.info["window"] == 2.5 and narrow.window == 1.0 and narrow.icp.window == 1.0 and wide.icp.window == 2.5
+
+
+@pytest.fixture(scope="module")
+def slow_and_fast(tmp_path_factory):
+    """The commensurate tunnel's ribs (1.5 m) and sleepers (0.6 m), 40 m of it, driven at 5 m/s
+    (run a: profiles 2 cm apart) and at 20 m/s (run b: 8 cm) without drift, run b's cloud then
+    moved by ``shift``: one tile of each run (23 m of the tunnel)."""
+    base = get_scenario("commensurate")
+    scn = replace(base, geometry=replace(base.geometry, sections=(("cutting", 12.0), ("rect", 40.0), ("cutting", 12.0)),
+                                         alignment=Alignment(origin=(529990.0, 180012.5, 10.0), heading_deg=90.0)),
+                  runs=(RunSpec("run_a", direction=1, speed=5.0, start_time=300000.0),
+                        RunSpec("run_b", direction=-1, speed=20.0, start_time=300600.0)),
+                  drift=replace(base.drift, max_horizontal=0.0, max_vertical=0.0, open_noise=(0.0, 0.0, 0.0)))
+    survey_dir = generate(scn, tmp_path_factory.mktemp("speeds"), seed=3).survey_dir
+    shift = np.array([0.9, -0.3, 0.05])
+    a = read_tile(survey_dir / "run_a" / "tiles" / "530000_180000.laz", "run_a")
+    b = read_tile(survey_dir / "run_b" / "tiles" / "530000_180000.laz", "run_b")
+    return a, replace(b, xyz=b.xyz + shift), shift
+
+
+@pytest.mark.slow
+def test_a_sparse_run_bs_windows_are_fitted_the_other_way_and_turned_back(slow_and_fast):
+    """Run b's profiles lie four times further apart than run a's: the windows fit run a's points
+    onto run b's (resolve.REVERSE_GAP_RATIO) and the pair still says what moves run b onto run a,
+    to millimetres, with ties at their own places and times. Run a matched onto run b is fitted
+    as always (its points are the denser), and says the opposite."""
+    a, b, shift = slow_and_fast
+    ka, kb = _detect("iss", {}, a, b)
+    matcher = registry().create("matcher", "pair_voting", {})
+    off = matcher.match(a, ka, b, kb)
+    assert off.status == "ok" and off.info["windows_reversed"], off.status
+    np.testing.assert_allclose(off.d, -shift, atol=0.005)
+    _check_ties(off, a, b)
+    back = matcher.match(b, kb, a, ka)
+    assert back.status == "ok" and "windows_reversed" not in back.info
+    np.testing.assert_allclose(back.d, shift, atol=0.01)
