@@ -743,8 +743,8 @@ def reversed_fit(rev: Piecewise, moving: np.ndarray) -> Piecewise:
     """The curve moving ``moving`` (run b's points) onto run a, from ``rev``: run a's points
     fitted onto run b's (:func:`piecewise_fit` with the roles swapped). Each window of ``rev``
     sits where its points land on run b, with the opposite offset; the curve is fitted through
-    them as :func:`piecewise_fit` would. The intensity marks stay with ``rev``'s clouds: the
-    curve has none (its alias test is the geometric one)."""
+    them as :func:`piecewise_fit` would. The intensity marks stay with ``rev``, whose clouds
+    they were found on: the curve has none."""
     rows = rev.windows
     landed = rev.origin + rows[:, :1] * rev.axis + rows[:, 1:4]
     origin = moving.mean(axis=0)

@@ -58,9 +58,10 @@ MARKS_REFIT_M = 0.2
 #: track only to within its profile gap, and its windows erred together: on a commensurate tunnel
 #: driven at 5 and 20 m/s (profiles 2 and 8 cm apart) the pairs' along-track errors scattered
 #: 2.4 cm RMS, `ok` pairs up to 4.7 cm off claiming 1.4 cm; fitted the other way, 0.7 cm RMS,
-#: the worst `ok` 1.8 cm. Runs at 10 and 12 m/s gained little that way (worst tie 2.5 -> 1.5 cm),
-#: and a bored tube at 8 and 16 m/s lost a fifth of its resolved length: the sparse run's planes
-#: smooth the thin ring joints the dense run's points would be placed by
+#: the worst `ok` 1.8 cm; a bored tube at 5 and 20 m/s was resolved along 89 % of its length
+#: instead of 75 %. At 10 and 12 m/s the gain was small (worst tie 2.5 -> 1.5 cm), and a tube at 8
+#: and 16 m/s lost a fifth of its resolved length (83 -> 66 %): the sparse run's planes smooth
+#: the thin ring joints the dense run's points would be placed by (docs/method.md, "Session 61")
 REVERSE_GAP_RATIO = 2.5
 #: a pair's along-track fitness profile rising by less than this over the search window shows no
 #: alias of its own: its windows are placed by marks where they hold some (_no_alias_of_its_own)
@@ -299,13 +300,13 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         if rev is None or not inside.any():
             return None, inside, 0.0, 0.0, {}
         fit = reversed_fit(rev, tile_b.xyz[inside])
-        if rev.on_marks:  # judged by its marks (alias_ratio), on the clouds that placed them
-            rival, shift, profile = alias_ratio(target_b, tile_a.xyz[inside_a], rev, -votes.center, votes.window,
-                                                s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
-            return fit, inside, rival, -shift, profile
-        rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
+        if not rev.on_marks:
+            return fit, inside, *alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
+                                             s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
+        # placed by marks alone: judged by them (alias_ratio), on the clouds they were found on
+        rival, shift, profile = alias_ratio(target_b, tile_a.xyz[inside_a], rev, -votes.center, votes.window,
                                             s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
-        return fit, inside, rival, shift, profile
+        return fit, inside, rival, -shift, profile
 
     start = chosen.fit.d
     fit, inside, rival, shift, profile = fit_from(start)
