@@ -24,7 +24,7 @@ from railtraj.data import Keypoints, PointTile, TileOffset
 from railtraj.errors import ConfigError
 from railtraj.hookspecs import hookimpl
 from railtraj.matching.consensus import boxes_overlap, failed
-from railtraj.matching.resolve import VoteSettings, resolve
+from railtraj.matching.resolve import REVERSE_GAP_RATIO, VoteSettings, resolve
 from railtraj.matching.spacing import point_spacing, radius_scale
 from railtraj.matching.voting import pair_translations
 
@@ -51,6 +51,9 @@ class VotingOptions:
     min_windows: int = 4  # windows an ok offset needs (shorter overlaps: degenerate)
     intensity: bool = True  # place windows without edges by intensity marks (stains, paint) where the tiles have them
     objects: bool = True  # ... and by short objects on a plain lining (boxes, cabinets, doors: 0.2-2 m along the track)
+    # run b's scan profiles this many times further apart than run a's (a faster train): the windows fit
+    # run a's points onto run b's, the denser onto the sparser (0: never; docs/method.md, "Session 61")
+    reverse_gap_ratio: float = REVERSE_GAP_RATIO
 
 
 @dataclass
@@ -70,6 +73,9 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
     if not 0 <= o.search_m <= o.max_misalignment:
         raise ConfigError(f"matcher={matcher} search_m={o.search_m}: give metres from 0 (off) to "
                           f"max_misalignment={o.max_misalignment}")
+    if not (o.reverse_gap_ratio == 0 or o.reverse_gap_ratio >= 1):
+        raise ConfigError(f"matcher={matcher} reverse_gap_ratio={o.reverse_gap_ratio}: give 1 or more (how many times "
+                          "further apart run b's scan profiles lie than run a's), or 0 to never fit run a onto run b")
     if o.tie_positions not in ("offset", "keypoints"):
         raise ConfigError(f"tie_positions={o.tie_positions!r}: choose offset or keypoints")
     settings = VoteSettings(inlier_radius=o.inlier_radius, n_peaks=o.n_peaks, min_inliers=o.min_inliers,
@@ -78,7 +84,7 @@ def vote_setup(matcher: str, o: VotingOptions) -> tuple[VoteSettings, IcpMatcher
                             ambiguity_ratio=o.ambiguity_ratio, max_sd=o.max_sd, target_voxel=o.target_voxel,
                             tie_positions=o.tie_positions, window_length=o.window_length,
                             min_windows=o.min_windows, intensity=o.intensity,
-                            objects=o.objects)
+                            objects=o.objects, reverse_gap_ratio=o.reverse_gap_ratio)
     icp = IcpMatcher(max_misalignment=o.max_misalignment, target_voxel=o.target_voxel, min_fitness=o.min_fitness,
                      max_sd=o.max_sd, tie_radius=o.inlier_radius, tie_positions=o.tie_positions,
                      alias_check=False) if o.refine else None

@@ -54,7 +54,7 @@ MAX_EDGE_MOVE_ACROSS = 0.02
 #: windows were fitted is fitted again there
 MARKS_REFIT_M = 0.2
 #: run b's scan profiles this many times further apart than run a's (:func:`profile_gap_ratio`):
-#: the windows fit run a's points onto run b's. A sparse run's points place the edges along the
+#: the windows fit run a's points onto run b's (the matchers' default ``reverse_gap_ratio``). A sparse run's points place the edges along the
 #: track only to within its profile gap, and its windows erred together: on a commensurate tunnel
 #: driven at 5 and 20 m/s (profiles 2 and 8 cm apart) the pairs' along-track errors scattered
 #: 2.4 cm RMS, `ok` pairs up to 4.7 cm off claiming 1.4 cm; fitted the other way, 0.7 cm RMS,
@@ -92,6 +92,7 @@ class VoteSettings:
     min_windows: int = 4  # windows the curve needs for ok (fewer: no curvature, degenerate)
     intensity: bool = True  # windows without edges placed by intensity marks (matching.intensity)
     objects: bool = True  # ... and by short objects, boxes and cabinets (matching.objects)
+    reverse_gap_ratio: float = REVERSE_GAP_RATIO  # run b's profile gap over run a's from which the windows fit a onto b (0: never)
 
 
 def peak_table(checked) -> list[list[float]]:
@@ -262,7 +263,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
 
     a_around = _beyond(tile_a, None) if s.objects else None  # (the same for every start)
 
-    reverse = profile_gap_ratio(tile_b, tile_a) >= REVERSE_GAP_RATIO
+    reverse = s.reverse_gap_ratio > 0 and profile_gap_ratio(tile_b, tile_a) >= s.reverse_gap_ratio
     if reverse:
         info["windows_reversed"] = True
         target_b, across_b = reference_target(tile_b.xyz, s), reference_target(tile_b.xyz, s, filled=True)
@@ -287,7 +288,7 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         return fit, inside, rival, shift, profile
 
     def fit_reversed(start: np.ndarray, center: np.ndarray, marks_first: bool, inside: np.ndarray):
-        """fit_from with run a's points fitted onto run b's (:data:`REVERSE_GAP_RATIO`)."""
+        """fit_from with run a's points fitted onto run b's (``reverse_gap_ratio``, :data:`REVERSE_GAP_RATIO`)."""
         inside_a = target_b.inside(tile_a.xyz - start, 0.3)
         intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
             (tile_b.intensity, tile_a.intensity[inside_a])

@@ -257,13 +257,26 @@ def test_a_search_beyond_the_matchers_window_is_refused():
 def test_a_pair_no_window_of_which_could_be_fitted_is_degenerate_and_unused(replica):
     """Too few of run b's points for any window (1 500 each): the dense check's rigid fit alone
     is no measurement: its formal sd (0-1 mm) drew two runs 5-11 cm apart at portal_trap 1's
-    start. The pair is ``degenerate`` without a covariance, so no stage uses it."""
+    start. The pair is ``degenerate`` without a covariance, so no stage uses it. By default run
+    a's points are fitted onto run b's in such a pair (its points 6.5 times further apart): the
+    windows then place run b across and up, to millimetres, and nothing along the track."""
     a, b, truth = replica
     ka, kb = _detect("iss", PRESETS["tunnel"], a, b)
     sparse = b.subset(np.random.default_rng(0).choice(len(b), 4_000, replace=False))
-    off = registry().create("matcher", "pair_voting", {}).match(a, ka, sparse, kb)
+    off = registry().create("matcher", "pair_voting", {"reverse_gap_ratio": 0}).match(a, ka, sparse, kb)
     assert off.status == "degenerate" and "piecewise" not in off.info, off.status
     assert not np.isfinite(off.cov).any() and off.info["unusable"]
+    reversed_ = registry().create("matcher", "pair_voting", {}).match(a, ka, sparse, kb)
+    assert reversed_.status == "degenerate" and reversed_.info["windows_reversed"], reversed_.status
+    windows = np.array(reversed_.info["piecewise"]["windows"])
+    assert len(windows) >= 4 and not windows[:, 5].any()  # no window found an along-track offset
+    across_up = (windows[:, 1:4] - truth) @ rotation_z(30)[:, 1:]
+    assert np.abs(across_up).max() < 0.01, across_up
+
+
+def test_reverse_gap_ratio_below_one_is_refused():
+    with pytest.raises(ConfigError, match="reverse_gap_ratio=0.5: give 1 or more"):
+        registry().create("matcher", "pair_voting", {"reverse_gap_ratio": 0.5})
 
 
 def test_a_pair_whose_offset_ramps_within_the_tile_is_fitted_window_by_window():
