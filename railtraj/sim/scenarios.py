@@ -145,6 +145,15 @@ def _commensurate_fast() -> Scenario:
         scanner=ScannerSpec(profile_rate=125.0, points_per_profile=350))
 
 
+def _commensurate_speeds() -> Scenario:
+    base = _commensurate()
+    return replace(
+        base, name="commensurate_speeds",
+        description="the commensurate tunnel driven at 5 and 20 m/s: run a's profiles 2 cm apart, run b's 8 cm",
+        runs=(RunSpec("run_a", direction=1, speed=5.0, start_time=300000.0),
+              RunSpec("run_b", direction=-1, speed=20.0, start_time=300600.0)))
+
+
 def _tube() -> Scenario:
     return Scenario(
         "tube", "segmental-lining bored tube on slab track: ring joints every 1.25 m and 100+ m "
@@ -156,7 +165,7 @@ def _tube() -> Scenario:
 
 
 CATALOGUE = {s.name: s for s in (_thesis(), _mixed(), _portal_trap(), _control(), _feature_poor(),
-                                 _commensurate(), _commensurate_fast(), _tube())}
+                                 _commensurate(), _commensurate_fast(), _commensurate_speeds(), _tube())}
 DEMO = "mixed"
 
 
