@@ -54,14 +54,15 @@ MAX_EDGE_MOVE_ACROSS = 0.02
 #: windows were fitted is fitted again there
 MARKS_REFIT_M = 0.2
 #: run b's scan profiles this many times further apart than run a's (:func:`profile_gap_ratio`):
-#: the windows fit run a's points onto run b's (the matchers' default ``reverse_gap_ratio``). A sparse run's points place the edges along the
-#: track only to within its profile gap, and its windows erred together: on a commensurate tunnel
-#: driven at 5 and 20 m/s (profiles 2 and 8 cm apart) the pairs' along-track errors scattered
-#: 2.4 cm RMS, `ok` pairs up to 4.7 cm off claiming 1.4 cm; fitted the other way, 0.7 cm RMS,
-#: the worst `ok` 1.8 cm; a bored tube at 5 and 20 m/s was resolved along 89 % of its length
-#: instead of 75 %. At 10 and 12 m/s the gain was small (worst tie 2.5 -> 1.5 cm), and a tube at 8
-#: and 16 m/s lost a fifth of its resolved length (83 -> 66 %): the sparse run's planes smooth
-#: the thin ring joints the dense run's points would be placed by (docs/method.md, "Session 61")
+#: the windows fit run a's points onto run b's (the matchers' default ``reverse_gap_ratio``). A
+#: sparse run's points place the edges along the track only to within its profile gap, and its
+#: windows erred together: on a commensurate tunnel driven at 5 and 20 m/s (profiles 2 and 8 cm
+#: apart) the pairs' along-track errors scattered 2.4 cm RMS, `ok` pairs up to 4.7 cm off claiming
+#: 1.4 cm; fitted the other way, 0.7 cm RMS, the worst `ok` 1.8 cm; a bored tube at 5 and 20 m/s
+#: was resolved along 89 % of its length instead of 75 %. At 10 and 12 m/s the gain was small
+#: (worst tie 2.5 -> 1.5 cm), and a tube at 8 and 16 m/s lost a fifth of its resolved length
+#: (83 -> 66 %): the sparse run's planes smooth the thin ring joints the dense run's points would
+#: be placed by (docs/method.md, "Session 61")
 REVERSE_GAP_RATIO = 2.5
 #: a pair's along-track fitness profile rising by less than this over the search window shows no
 #: alias of its own: its windows are placed by marks where they hold some (_no_alias_of_its_own)
@@ -269,35 +270,36 @@ def _piecewise_estimate(tile_a, kp_a, tile_b, kp_b, votes: Votes, chosen, s: Vot
         target_b, across_b = reference_target(tile_b.xyz, s), reference_target(tile_b.xyz, s, filled=True)
         b_around = _beyond(tile_b, None) if s.objects else None
 
-    def fit_from(start: np.ndarray, center: np.ndarray = votes.center, marks_first: bool = False):
-        inside = target.inside(tile_b.xyz + start, 0.3)
-        if reverse:
-            return fit_reversed(start, center, marks_first, inside)
-        intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
-            (tile_a.intensity, tile_b.intensity[inside])
-        around = Surroundings(a_around, _beyond(tile_b, ~inside),
-                              lambda xyz: target.inside(xyz, 0.0)) if s.objects else None
-        fit = piecewise_fit(target, tile_a.xyz, tile_b.xyz[inside], start, s.window_length,
-                            chosen.fit.information, tree, intensity, s.objects, min_windows=s.min_windows,
+    def windows_onto(ref: PointTile, mov: PointTile, ref_target: PlaneTarget, ref_across: PlaneTarget,
+                     ref_around: np.ndarray | None, ref_tree: cKDTree, start: np.ndarray, center: np.ndarray,
+                     marks_first: bool) -> tuple[Piecewise | None, np.ndarray]:
+        """:func:`piecewise_fit` of ``mov``'s points onto ``ref``'s from ``start`` (run b onto run
+        a, or the other way round), and which of ``mov``'s points it used."""
+        inside = ref_target.inside(mov.xyz + start, 0.3)
+        intensity = None if not s.intensity or ref.intensity is None or mov.intensity is None else \
+            (ref.intensity, mov.intensity[inside])
+        around = Surroundings(ref_around, _beyond(mov, ~inside),
+                              lambda xyz: ref_target.inside(xyz, 0.0)) if s.objects else None
+        fit = piecewise_fit(ref_target, ref.xyz, mov.xyz[inside], start, s.window_length,
+                            chosen.fit.information, ref_tree, intensity, s.objects, min_windows=s.min_windows,
                             tau=s.fitness_radius, vote_window=(center, votes.window), around=around,
-                            across_target=across_target, marks_first=marks_first, travel=tile_a.travel)
+                            across_target=ref_across, marks_first=marks_first, travel=tile_a.travel)
+        return fit, inside
+
+    def fit_from(start: np.ndarray, center: np.ndarray = votes.center, marks_first: bool = False):
+        if reverse:
+            return fit_reversed(start, center, marks_first)
+        fit, inside = windows_onto(tile_a, tile_b, target, across_target, a_around, tree, start, center, marks_first)
         if fit is None:
             return None, inside, 0.0, 0.0, {}
-        rival, shift, profile = alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
-                                            s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
-        return fit, inside, rival, shift, profile
+        return fit, inside, *alias_ratio(target, tile_b.xyz[inside], fit, votes.center, votes.window,
+                                         s.fitness_radius, 2 * s.inlier_radius, 2 * s.profile_points)
 
-    def fit_reversed(start: np.ndarray, center: np.ndarray, marks_first: bool, inside: np.ndarray):
-        """fit_from with run a's points fitted onto run b's (``reverse_gap_ratio``, :data:`REVERSE_GAP_RATIO`)."""
-        inside_a = target_b.inside(tile_a.xyz - start, 0.3)
-        intensity = None if not s.intensity or tile_a.intensity is None or tile_b.intensity is None else \
-            (tile_b.intensity, tile_a.intensity[inside_a])
-        around = Surroundings(b_around, _beyond(tile_a, ~inside_a),
-                              lambda xyz: target_b.inside(xyz, 0.0)) if s.objects else None
-        rev = piecewise_fit(target_b, tile_b.xyz, tile_a.xyz[inside_a], -start, s.window_length,
-                            chosen.fit.information, reference_tree(tile_b.xyz), intensity, s.objects,
-                            min_windows=s.min_windows, tau=s.fitness_radius, vote_window=(-center, votes.window),
-                            around=around, across_target=across_b, marks_first=marks_first, travel=tile_a.travel)
+    def fit_reversed(start: np.ndarray, center: np.ndarray, marks_first: bool):
+        """fit_from with run a's points fitted onto run b's (``reverse_gap_ratio``), turned back."""
+        inside = target.inside(tile_b.xyz + start, 0.3)
+        rev, inside_a = windows_onto(tile_b, tile_a, target_b, across_b, b_around, reference_tree(tile_b.xyz),
+                                     -start, -center, marks_first)
         if rev is None or not inside.any():
             return None, inside, 0.0, 0.0, {}
         fit = reversed_fit(rev, tile_b.xyz[inside])
