@@ -157,6 +157,8 @@ def build_metrics(result: PipelineResult, seconds: dict[str, float], anchor_coun
             # pairs whose windows fitted run a's points onto run b's, the sparser along the track
             # (railtraj.matching.resolve.REVERSE_GAP_RATIO)
             "tile_pairs_reversed": sum(bool(pr.offset.info.get("windows_reversed")) for pr in result.pairs),
+            # pairs matched again about the along-track chains' prediction (railtraj.alongtrack.rematch_centres)
+            "tile_pairs_rematched": sum("rematched" in pr.offset.info for pr in result.pairs),
             "ties": int(sum(len(t) for t in result.ties)),
             "anchors": anchor_count,
         },

@@ -23,10 +23,12 @@ import numpy as np
 
 from railtraj.adjust.offsets import with_rejections
 from railtraj.alongtrack import (
+    COARSE,
     AlongTrackOptions,
     BeyondReach,
     beyond_reach,
     beyond_reach_note,
+    rematch_centres,
     resolve_along_track,
     used_along,
 )
@@ -190,6 +192,19 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             pairs_reused += more
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
+        t0, rematched = time.perf_counter(), []
+        for _ in range(REMATCH_PASSES):  # a pair fixed again lets the chains predict its neighbours better
+            centres = rematch_centres(resolved, options.alongtrack)
+            if not centres or not callable(getattr(stages.matcher, "widened", None)):
+                break
+            matched, results, before_chains, alongtrack, kept, more = _rematched(
+                centres, pairs, matched, keypoints, tile_key, trajectories, stages, per_process, cache, progress, survey)
+            resolved = [r.offset for r in results]
+            pairs_reused += more
+            rematched.append((len(centres), kept))
+            clock["rematched"] = time.perf_counter() - t0
+        if rematched:
+            along_notes.append(_rematched_note(rematched, options))
         coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                        options.alongtrack.resolved_sd)
         unresolved, why = _reference_unresolved(coverage, before_chains, survey, options)
@@ -339,22 +354,25 @@ def _other_pairs_note(unresolved: dict[str, float], why: str, n_pairs: int) -> s
 
 
 def _match(pairs: list[TilePair], keypoints: dict, tile_key: dict, trajectories: dict[str, Trajectory],
-           stages: Stages, options: PipelineOptions, cache: Cache | None, progress) -> tuple[list[PairResult], int]:
+           stages: Stages, options: PipelineOptions, cache: Cache | None, progress,
+           centres: list[np.ndarray] | None = None) -> tuple[list[PairResult], int]:
     """Match ``pairs`` on the executor (finished pairs from ``cache``), in the order of ``pairs``;
     and how many came from the cache. Each pair's job carries its runs' directions of travel
     (:func:`railtraj.track_direction.pair_travel`; not part of the cache key: they overrule only
     a fitted track direction more than 10 degrees off, and a reprocessed trajectory moves them
-    by hundredths of a degree)."""
+    by hundredths of a degree). ``centres``: per pair, where the matcher searches about (the
+    offset; default: where the trajectories put the runs)."""
+    centres = centres or [None] * len(pairs)
     order = visit_order(pairs)
     backwards = order[::-1]  # the tiles detected last are still in the tile cache: match them first
     pair_keys = [cache.pair_key(pairs[k], tile_key[(pairs[k].run_a, pairs[k].tile_a.path)],
                                 tile_key[(pairs[k].run_b, pairs[k].tile_b.path)],
-                                {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE})
+                                _match_key(options, centres[k]))
                  if cache else "" for k in backwards]
     jobs = [(pairs[k], keypoints[(pairs[k].run_a, pairs[k].tile_a.path)],
              keypoints[(pairs[k].run_b, pairs[k].tile_b.path)], stages, options,
              tuple(pair_travel(trajectories[run], pairs[k].overlap_min, pairs[k].overlap_max)
-                   for run in (pairs[k].run_a, pairs[k].run_b))) for k in backwards]
+                   for run in (pairs[k].run_a, pairs[k].run_b)), centres[k]) for k in backwards]
     with blas_one_thread():
         matched, reused = cached_map(stages.executor, match_pair, jobs, pair_keys, cache, "pairs",
                                      progress=progress or _log_progress("matched", "tile pairs"))
@@ -426,6 +444,63 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
     for k, r in zip(again, again_matched, strict=True):
         out[k] = r
     return out, window, note, more
+
+
+#: m: the search window (each way) of a pair matched again about the chains' prediction: its
+#: neighbouring aliases (sleepers 0.6 m, ribs 1.0-1.5 m) inside, the alias it was on (3.0 m) not
+REMATCH_WINDOW_M = 1.0
+#: rounds of matching again: each may fix pairs that predict their neighbours to ``rematch_sd``
+REMATCH_PASSES = 3
+
+
+def _rematched(centres: dict[int, np.ndarray], pairs: list[TilePair], matched: list[PairResult], keypoints: dict,
+               tile_key: dict, trajectories: dict[str, Trajectory], stages: Stages, options: PipelineOptions,
+               cache: Cache | None, progress,
+               survey: Survey) -> tuple[list[PairResult], list[PairResult], SdCheck | None, list[dict], int, int]:
+    """The pairs ``centres`` names matched again within :data:`REMATCH_WINDOW_M` of their
+    centre (the offset the chains predict, :func:`railtraj.alongtrack.rematch_centres`) and the
+    chains run again: a pair they then resolve keeps its new match (``info["rematched"]``), any
+    other its first (``info["rematch_tried"]``: not tried again). The matcher's results, the
+    along-track results, the check of reported sd before the chains and the along-track report
+    (as :func:`_along_track`), how many pairs kept their new match, how many came from the cache.
+
+    Only a resolved pair is kept: a new match the chains cannot fix either is no better placed,
+    and in a bored tube searched within 1 m of the prediction a pair's profile could be flat,
+    showing no alias at all, where its first match's windows had measured the drift's rate."""
+    again = sorted(centres)
+    reach = max(float(np.linalg.norm(centres[k])) for k in again) + REMATCH_WINDOW_M
+    near = replace(stages, matcher=stages.matcher.widened(REMATCH_WINDOW_M))
+    redo = with_context([pairs[k] for k in again], survey, reach + CONTEXT_M)
+    redone, more = _match(redo, keypoints, tile_key, trajectories, near,
+                          replace(options, max_misalignment_m=REMATCH_WINDOW_M), cache, progress,
+                          centres=[centres[k] for k in again])
+    trial = list(matched)
+    for k, r in zip(again, redone, strict=True):
+        if r.offset.status in MATCHED:
+            info = dict(r.offset.info, rematched={"centre": np.round(centres[k], 3).tolist(),
+                                                  "first_status": matched[k].offset.status})
+            trial[k] = replace(r, offset=replace(r.offset, info=info))
+    results, before_chains, report = _along_track(trial, trajectories, options)
+    kept = {k for k in again if "rematched" in trial[k].offset.info and results[k].offset.status in ("ok", COARSE)}
+    out = list(matched)
+    for k in again:
+        first = matched[k].offset
+        out[k] = trial[k] if k in kept else replace(matched[k], offset=replace(first, info=dict(
+            first.info, rematch_tried=np.round(centres[k], 3).tolist())))
+    if len(kept) < len(again):
+        results, before_chains, report = _along_track(out, trajectories, options)
+    return out, results, before_chains, report, len(kept), more
+
+
+def _rematched_note(passes: list[tuple[int, int]], options: PipelineOptions) -> str:
+    """A note on the pairs matched again about the chains' prediction: how many, in how many
+    passes, and how many the chains then resolved (kept)."""
+    note = (f"along-track: {sum(n for n, _ in passes)} tile pairs none of whose aliases lay where the chains put them "
+            f"(to pipeline.alongtrack.rematch_sd={options.alongtrack.rematch_sd:g} m or better) were matched again "
+            f"within {REMATCH_WINDOW_M:g} m of that ({len(passes)} passes): {sum(k for _, k in passes)} then resolved "
+            "along the track, the others keep their first match")
+    log.info(note)
+    return note
 
 
 def optimize(optimizer, trajectories: dict[str, Trajectory], ties: list[Ties], offsets: list[TileOffset],
@@ -531,6 +606,14 @@ def detect_tile(job: tuple) -> tuple[Keypoints, dict[str, float]]:
     return kp, seconds
 
 
+def _match_key(options: PipelineOptions, centre: np.ndarray | None) -> dict:
+    """What of the job's options a matched pair depends on (its cache key)."""
+    key = {"max_misalignment_m": options.max_misalignment_m, "c2c_sample": C2C_SAMPLE}
+    if centre is not None:
+        key["centre"] = np.round(centre, 4).tolist()
+    return key
+
+
 def match_pair(job: tuple) -> PairResult:
     """Match one tile pair from its keypoints (runs in a worker for parallel executors).
 
@@ -539,8 +622,12 @@ def match_pair(job: tuple) -> PairResult:
     from this process's tile cache when detection or an earlier pair has just read them, each
     with its run's direction of travel there (:attr:`railtraj.data.PointTile.travel`).
     """
-    pair, (kp_a, sec_a), (kp_b, sec_b), stages, options, (travel_a, travel_b) = job
+    pair, (kp_a, sec_a), (kp_b, sec_b), stages, options, (travel_a, travel_b), centre = job
+    initial = None
     margin = options.max_misalignment_m
+    if centre is not None:  # searched about it: the crop reaches as far
+        initial = TileOffset(pair.run_a, pair.run_b, pair.tile_a.path.name, pair.tile_b.path.name, d=centre)
+        margin += float(np.linalg.norm(centre))
     lo = np.asarray(pair.overlap_min, dtype=float) - margin
     hi = np.asarray(pair.overlap_max, dtype=float) + margin
     lo[2], hi[2] = -np.inf, np.inf
@@ -556,11 +643,11 @@ def match_pair(job: tuple) -> PairResult:
     seconds["read"] += time.perf_counter() - t
 
     t = time.perf_counter()
-    offset = stages.matcher.match(tile_a, kp_a, tile_b, kp_b, None)
+    offset = stages.matcher.match(tile_a, kp_a, tile_b, kp_b, initial)
     if _misfit_for_its_tile(offset, pair):
         joined = replace(tiles.read_joined(pair.tile_a.path, pair.run_a, pair.context_a, (lo, hi), CONTEXT_M),
                          travel=travel_a)
-        again = stages.matcher.match(joined, kp_a, tile_b, kp_b, None)
+        again = stages.matcher.match(joined, kp_a, tile_b, kp_b, initial)
         if again.status in MATCHED:  # else the first refusal stands
             tile_a, offset = joined, again
         offset = replace(offset, info=dict(offset.info, joined_tiles=len(pair.context_a), joined_status=again.status))

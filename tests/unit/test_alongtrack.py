@@ -12,6 +12,7 @@ from railtraj.alongtrack import (
     AlongTrackOptions,
     beyond_reach,
     beyond_reach_note,
+    rematch_centres,
     resolve_along_track,
 )
 from railtraj.data import Ties, TileOffset, Trajectory
@@ -278,6 +279,31 @@ def test_a_degenerate_pair_on_one_or_two_windows_is_not_fixed(n_windows, fixed):
     assert [o.status for k, o in enumerate(out) if k != 8] == \
         [o.status for k, o in enumerate(resolve_along_track(_chain({}, statuses={0: "ok", 3: "ok", 6: "ok", 8: "degenerate"})[0],
                                                             trajs, AlongTrackOptions())[0]) if k != 8]
+
+
+def test_a_pair_whose_profile_shows_its_alias_alone_is_matched_again_where_the_chain_predicts():
+    """An ``ok`` pair 3 m off whose profile peaks at its own fit only (a noisy scanner: the truth
+    misfits where the curve was fitted at the alias) has no candidate near the chain's
+    prediction: it is left unresolved, and named to be matched again about that prediction
+    (its across and up as measured), once, where the prediction is good to ``rematch_sd``."""
+    offsets, trajs, s = _chain({5: -3.0}, statuses={0: "ok", 3: "ok", 5: "ok", 6: "ok"})
+    lone = offsets[5]
+    profile = lone.info["alias_profile"]
+    ts = profile["start"] + profile["step"] * np.arange(len(profile["fitness"]))
+    fitness = 0.5 + 0.49 * np.exp(-((ts / 0.04) ** 2))  # one peak: the matcher's own fit
+    offsets[5] = replace(lone, info=dict(lone.info, alias_profile=dict(profile, fitness=fitness.tolist())))
+    out, report = resolve_along_track(offsets, trajs, AlongTrackOptions())
+    assert out[5].status == "ambiguous" and not out[5].info["observed_at"]["on_candidate"]
+    centres = rematch_centres(out, AlongTrackOptions())
+    assert list(centres) == [5]  # the others are resolved, or unresolved with a candidate near
+    assert abs(centres[5][0] - _true_along(s[5:6])[0]) < 0.05, centres  # not 3 m off
+    np.testing.assert_allclose(centres[5][1:], lone.d[1:])
+    sd = next(r["predicted_sd_m"] for r in report if r["pair"] == 5)
+    assert rematch_centres(out, AlongTrackOptions(rematch_sd=0.0)) == {}
+    assert rematch_centres(out, AlongTrackOptions(rematch_sd=0.5 * sd)) == {}
+    for key in ("rematched", "rematch_tried"):  # matched again before: kept, or not resolved there
+        again = replace(out[5], info=dict(out[5].info, **{key: centres[5].tolist()}))
+        assert rematch_centres([again], AlongTrackOptions()) == {}
 
 
 def test_a_pair_without_along_track_evidence_is_observed_where_the_trajectories_put_it():

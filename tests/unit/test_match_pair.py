@@ -70,7 +70,7 @@ def test_a_pair_cut_lengthwise_is_matched_against_run_as_cloud_in_the_next_tile_
                                    matcher=reg.create("matcher", "pair_voting"))
     kp = [detect_tile((run, tile.path, (0.0, 1e9), stages, 1.0, options.pair_part_m))
           for run, tile in ((pair.run_a, pair.tile_a), (pair.run_b, pair.tile_b))]
-    offset = match_pair((pair, kp[0], kp[1], stages, options, (None, None))).offset
+    offset = match_pair((pair, kp[0], kp[1], stages, options, (None, None), None)).offset
     assert offset.status in ("ok", "ambiguous", "degenerate"), offset.status
     assert offset.info["joined_tiles"] == len(pair.context_a) > 1
     np.testing.assert_allclose(offset.d[1:], -SHIFT[1:], atol=0.03)  # across and up
@@ -78,3 +78,24 @@ def test_a_pair_cut_lengthwise_is_matched_against_run_as_cloud_in_the_next_tile_
         assert abs(offset.d[0] + SHIFT[0]) < 0.03
     assert "1 tile pair(s) found no fit against run a's tile" in joined_tiles_note([offset])
     assert "1 of them then matched" in joined_tiles_note([offset])
+
+
+@pytest.mark.parametrize("centre_along", [0.35, 3.3])
+def test_a_pair_matched_about_a_centre_is_matched_within_the_window_about_it(cut_lengthwise, centre_along):
+    """Matched again about the along-track chains' prediction (the pipeline's second pass,
+    :func:`railtraj.alongtrack.rematch_centres`), a pair is searched within 1 m of that centre:
+    about the truth (0.3 m along) it is found there; about the 3.0 m alias of the tunnel's ribs
+    (1.5 m) and sleepers (0.6 m), on that alias. Across and up alike."""
+    pair, options = cut_lengthwise
+    reg = registry()
+    stages = types.SimpleNamespace(detector=reg.create("detector", "iss"), descriptor=reg.create("descriptor", "none"),
+                                   matcher=reg.create("matcher", "pair_voting").widened(1.0))
+    kp = [detect_tile((run, tile.path, (0.0, 1e9), stages, 1.0, options.pair_part_m))
+          for run, tile in ((pair.run_a, pair.tile_a), (pair.run_b, pair.tile_b))]
+    centre = np.array([centre_along, 2.1, 0.0])
+    offset = match_pair((pair, kp[0], kp[1], stages, replace(options, max_misalignment_m=1.0), (None, None),
+                         centre)).offset
+    assert offset.status in ("ok", "ambiguous", "degenerate"), offset.status
+    np.testing.assert_allclose(offset.info["center"], centre)
+    np.testing.assert_allclose(offset.d[1:], -SHIFT[1:], atol=0.03)
+    assert abs(offset.d[0] - (-SHIFT[0] + round(centre_along + SHIFT[0]))) < 0.05, offset.d
