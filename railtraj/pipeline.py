@@ -495,10 +495,11 @@ def _rematched(centres: dict[int, np.ndarray], pairs: list[TilePair], matched: l
 def _rematched_note(passes: list[tuple[int, int]], options: PipelineOptions) -> str:
     """A note on the pairs matched again about the chains' prediction: how many, in how many
     passes, and how many the chains then resolved (kept)."""
-    note = (f"along-track: {sum(n for n, _ in passes)} tile pairs none of whose aliases lay where the chains put them "
-            f"(to pipeline.alongtrack.rematch_sd={options.alongtrack.rematch_sd:g} m or better) were matched again "
-            f"within {REMATCH_WINDOW_M:g} m of that ({len(passes)} passes): {sum(k for _, k in passes)} then resolved "
-            "along the track, the others keep their first match")
+    tried, kept = sum(n for n, _ in passes), sum(k for _, k in passes)
+    note = (f"along-track: {tried} tile pair(s) none of whose aliases lay where the chains put them (to "
+            f"pipeline.alongtrack.rematch_sd={options.alongtrack.rematch_sd:g} m or better) matched again within "
+            f"{REMATCH_WINDOW_M:g} m of that, in {len(passes)} pass(es): {kept} then resolved along the track and kept "
+            "that match, the others keep their first")
     log.info(note)
     return note
 
