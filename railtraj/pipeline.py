@@ -193,9 +193,11 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             along_notes.append(note)
             clock["widened"] = time.perf_counter() - t0
         t0, rematched = time.perf_counter(), []
-        for _ in range(REMATCH_PASSES):  # a pair fixed again lets the chains predict its neighbours better
+        # a pair fixed again lets the chains predict its neighbours better (a matcher that cannot
+        # be widened, matcher=icp, cannot search about a prediction either)
+        for _ in range(REMATCH_PASSES if callable(getattr(stages.matcher, "widened", None)) else 0):
             centres = rematch_centres(resolved, options.alongtrack)
-            if not centres or not callable(getattr(stages.matcher, "widened", None)):
+            if not centres:
                 break
             matched, results, before_chains, alongtrack, kept, more = _rematched(
                 centres, pairs, matched, keypoints, tile_key, trajectories, stages, per_process, cache, progress, survey)
@@ -436,14 +438,24 @@ def _widened(reach: BeyondReach, pairs: list[TilePair], matched: list[PairResult
             f"matcher searched; the {len(again)} tile pairs of {runs} they had not used along the track were matched "
             f"again within {window:g} m (pipeline.max_widened_m={options.max_widened_m:g}; 0: never)")
     log.warning(note)
-    wide = replace(stages, matcher=stages.matcher.widened(window))
-    redo = with_context([pairs[k] for k in again], survey, window + CONTEXT_M)
-    again_matched, more = _match(redo, keypoints, tile_key, trajectories, wide,
-                                 replace(options, max_misalignment_m=window), cache, progress)
+    again_matched, more = _match_within([pairs[k] for k in again], window, window, keypoints, tile_key, trajectories,
+                                        stages, options, cache, progress, survey)
     out = list(matched)
     for k, r in zip(again, again_matched, strict=True):
         out[k] = r
     return out, window, note, more
+
+
+def _match_within(again: list[TilePair], window: float, reach: float, keypoints: dict, tile_key: dict,
+                  trajectories: dict[str, Trajectory], stages: Stages, options: PipelineOptions, cache: Cache | None,
+                  progress, survey: Survey, centres: list[np.ndarray] | None = None) -> tuple[list[PairResult], int]:
+    """The tile pairs ``again`` matched again by the matcher searching within ``window`` m (about
+    ``centres``, or where the trajectories put the runs), each with its runs' tiles within
+    ``reach`` m as context (:func:`_widened`, :func:`_rematched`); and how many came from the cache."""
+    searching = replace(stages, matcher=stages.matcher.widened(window))
+    redo = with_context(again, survey, reach + CONTEXT_M)
+    return _match(redo, keypoints, tile_key, trajectories, searching, replace(options, max_misalignment_m=window),
+                  cache, progress, centres=centres)
 
 
 #: m: the search window (each way) of a pair matched again about the chains' prediction: its
@@ -469,11 +481,9 @@ def _rematched(centres: dict[int, np.ndarray], pairs: list[TilePair], matched: l
     showing no alias at all, where its first match's windows had measured the drift's rate."""
     again = sorted(centres)
     reach = max(float(np.linalg.norm(centres[k])) for k in again) + REMATCH_WINDOW_M
-    near = replace(stages, matcher=stages.matcher.widened(REMATCH_WINDOW_M))
-    redo = with_context([pairs[k] for k in again], survey, reach + CONTEXT_M)
-    redone, more = _match(redo, keypoints, tile_key, trajectories, near,
-                          replace(options, max_misalignment_m=REMATCH_WINDOW_M), cache, progress,
-                          centres=[centres[k] for k in again])
+    redone, more = _match_within([pairs[k] for k in again], REMATCH_WINDOW_M, reach, keypoints, tile_key,
+                                 trajectories, stages, options, cache, progress, survey,
+                                 centres=[centres[k] for k in again])
     trial = list(matched)
     for k, r in zip(again, redone, strict=True):
         if r.offset.status in MATCHED:
