@@ -204,8 +204,8 @@ def run_pipeline(survey_dir: Path, stages: Stages, options: PipelineOptions,
             resolved = [r.offset for r in results]
             pairs_reused += more
             rematched.append((len(centres), kept))
-            clock["rematched"] = time.perf_counter() - t0
         if rematched:
+            clock["rematched"] = time.perf_counter() - t0
             along_notes.append(_rematched_note(rematched, options))
         coverage, coverage_note = along_track_coverage(resolved, alongtrack, trajectories,
                                                        options.alongtrack.resolved_sd)
